@@ -1,0 +1,146 @@
+"""The ``causalgs`` command line.
+
+Commands only parse options, build a config, call one library function and save what it returns; the work lives in
+the ``causalgs`` package. Errors caused by the input are printed as one line and exit with status 1, never with a
+traceback.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from causalgs import __version__
+from causalgs.errors import CausalGSError
+from cli.options import out_option, seed_option
+
+
+class _Group(click.Group):
+    """Click group that turns :class:`CausalGSError` into a one-line message and a non-zero exit."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except CausalGSError as e:
+            click.echo(f"Error: {e}", err=True)
+            sys.exit(1)
+        except KeyboardInterrupt:
+            click.echo("Interrupted.", err=True)
+            sys.exit(130)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 110})
+@click.version_option(__version__, prog_name="causalgs")
+def cli():
+    """CausalGS: learn the physics of a dynamic 3D scene from multi-view video and predict its future.
+
+    Every 3D Gaussian of the scene is also a physical particle. An inverse-physics model infers each particle's
+    initial velocity and material (Young's modulus, Poisson ratio, density), and a differentiable MPM simulator moves
+    the particles from those causes, trained end to end through the rendering loss.
+
+    \b
+    Typical session:
+      causalgs synth spin --out data/spin       # a built-in scene with ground truth
+      causalgs info data/spin                   # check a dataset and print its summary
+      causalgs fit data/spin --out runs/spin    # learn the scene (not built yet)
+      causalgs predict runs/spin --frames 22    # extrapolate the future (not built yet)
+    """
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Built commands
+# ---------------------------------------------------------------------------------------------------------------------
+@cli.command()
+@click.argument("name", type=click.Choice(["spin"]))
+@out_option()
+@click.option("--views", type=click.IntRange(2, 200), default=20, show_default=True, help="Cameras on the ring.")
+@click.option("--frames", type=click.IntRange(2, 1000), default=89, show_default=True, help="Frames in time.")
+@click.option("--resolution", type=click.IntRange(8, 2048), default=128, show_default=True, help="Image side (px).")
+@click.option(
+    "--background",
+    default="1,1,1",
+    show_default=True,
+    help="Background colour as 'r,g,b' in [0, 1]; images are RGBA and the reader composites them on it.",
+)
+@seed_option
+@click.option("--force", is_flag=True, help="Overwrite an existing dataset in --out.")
+def synth(name, out, views, frames, resolution, background, seed, force):
+    """Write the built-in scene NAME as a dataset in --out.
+
+    The layout is the D-NeRF / NVFi one (transforms_{train,val,test}.json, RGBA PNGs, points3d.ply) plus gt/ with
+    per-view per-frame object-id masks and the true motion. Images come from analytic ray casting, never from the
+    model's rasterizer. train = the first 3/4 of the frames from all but the held-out views; val = the same frames
+    from the held-out views (interpolation); test = the remaining future frames from every view (extrapolation).
+    """
+    from causalgs.synth import generate
+
+    bg = _parse_rgb(background, "--background")
+    summary = generate(name, out, views=views, frames=frames, resolution=resolution, background=bg, seed=seed,
+                       overwrite=force)
+    click.echo(summary)
+
+
+@cli.command()
+@click.argument("data", type=click.Path(path_type=Path))
+@click.option("--downscale", type=float, default=1.0, show_default=True, help="Image scale factor in (0, 1].")
+def info(data, downscale):
+    """Check the dataset in DATA and print its summary (splits, frames, views, times, image size).
+
+    Every problem found (missing files, malformed JSON, non-rigid cameras, times outside [0, 1], images of
+    inconsistent size, empty splits) is reported as one line naming the file and the value.
+    """
+    from causalgs.dataset import load_dataset
+
+    ds = load_dataset(data, downscale=downscale)
+    click.echo(ds.summary())
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Commands planned but not built yet: they say so and exit non-zero.
+# ---------------------------------------------------------------------------------------------------------------------
+def _not_built(name: str, what: str, issue: int):
+    @click.pass_context
+    def run(ctx, **_):
+        click.echo(f"Error: 'causalgs {name}' is not built yet ({what}; planned in issue #{issue}).", err=True)
+        ctx.exit(2)
+
+    run.__name__ = name
+    return run
+
+
+_PLANNED = {
+    "fit": ("learn a scene from multi-view video: canonical Gaussians, velocities, materials, MPM", 6),
+    "predict": ("extrapolate future frames with the simulator (--frames 22)", 6),
+    "render": ("render a saved run or a 3DGS PLY from any camera at any time", 3),
+    "cluster": ("segment the scene into objects by learned physics (K-means on material features)", 6),
+    "discover": ("find and name a physical effect the model is missing, add it and show the error shrink", 7),
+    "bench": ("machine-readable benchmarks of the rasterizer and the simulator", 3),
+}
+
+for _name, (_what, _issue) in _PLANNED.items():
+    cli.command(
+        name=_name,
+        help=f"{_what[0].upper()}{_what[1:]}. (Not built yet: issue #{_issue}.)",
+        context_settings={"ignore_unknown_options": True, "allow_extra_args": True},
+        add_help_option=True,
+    )(click.argument("args", nargs=-1, type=click.UNPROCESSED)(_not_built(_name, _what, _issue)))
+
+
+def _parse_rgb(text: str, what: str) -> tuple[float, float, float]:
+    try:
+        vals = tuple(float(s) for s in text.split(","))
+    except ValueError:
+        raise CausalGSError(f"{what} '{text}' must be three numbers 'r,g,b' in [0, 1]") from None
+    if len(vals) != 3 or not all(0.0 <= v <= 1.0 for v in vals):
+        raise CausalGSError(f"{what} '{text}' must be three numbers 'r,g,b' in [0, 1]")
+    return vals
+
+
+def main():
+    cli(prog_name="causalgs")
+
+
+if __name__ == "__main__":
+    main()
