@@ -24,9 +24,9 @@ from pathlib import Path
 os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")  # no network call from ti.init
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "False")  # no banner on import
 
-import taichi as ti  # noqa: E402
+import taichi as ti
 
-from causalgs.errors import RuntimeConfigError  # noqa: E402
+from causalgs.errors import RuntimeConfigError
 
 DEVICES = ("cpu", "gpu")
 PRECISIONS = ("float32", "float64")

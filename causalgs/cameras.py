@@ -100,8 +100,9 @@ class Camera:
         return cls(K, np.linalg.inv(np.asarray(c2w_opencv, dtype=np.float64)), width, height)
 
     @classmethod
-    def from_blender(cls, c2w_opengl, width: int, height: int, *, fov_x: float | None = None, fl_x=None,
-                     fl_y=None, cx=None, cy=None) -> Camera:
+    def from_blender(
+        cls, c2w_opengl, width: int, height: int, *, fov_x: float | None = None, fl_x=None, fl_y=None, cx=None, cy=None
+    ) -> Camera:
         """A camera from a Blender-style OpenGL camera-to-world matrix and either ``fov_x`` or ``fl_x``.
 
         Missing values follow the datasets' conventions: ``fl_y = fl_x`` (square pixels), principal point at the
@@ -195,8 +196,8 @@ class Camera:
 
     def scaled(self, factor: float) -> Camera:
         """The same camera for an image resized by ``factor`` (sizes rounded; K scaled by the exact size ratios)."""
-        w = max(1, int(round(self.width * factor)))
-        h = max(1, int(round(self.height * factor)))
+        w = max(1, round(self.width * factor))
+        h = max(1, round(self.height * factor))
         sx, sy = w / self.width, h / self.height
         K = self.K.copy()
         K[0] *= sx
@@ -205,7 +206,7 @@ class Camera:
 
     # -- JSON form ----------------------------------------------------------------------------------------------
     def to_json(self) -> dict:
-        """The dataset's own camera form: ``camera_angle_x``, ``w``, ``h``, intrinsics and OpenGL ``transform_matrix``."""
+        """The dataset's camera form: ``camera_angle_x``, ``w``, ``h``, intrinsics, OpenGL ``transform_matrix``."""
         return {
             "camera_angle_x": self.fov_x,
             "w": self.width,
@@ -239,5 +240,6 @@ class Camera:
         fov = intr.get("camera_angle_x")
         if fov is not None and fov >= math.pi:
             raise DataError(f"{what}: camera_angle_x = {fov} must be below pi radians")
-        return cls.from_blender(c2w, w, h, fov_x=fov, fl_x=intr.get("fl_x"), fl_y=intr.get("fl_y"),
-                                cx=intr.get("cx"), cy=intr.get("cy"))
+        return cls.from_blender(
+            c2w, w, h, fov_x=fov, fl_x=intr.get("fl_x"), fl_y=intr.get("fl_y"), cx=intr.get("cx"), cy=intr.get("cy")
+        )

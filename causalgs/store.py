@@ -429,9 +429,17 @@ class ParticleStore:
             raise DataError(f"{path}: not a causalgs particle store (no __meta__ entry)")
         try:
             meta = json.loads(str(data["__meta__"]))
-            specs = [FieldSpec(**{**s, "elem": tuple(s["elem"]), "per_row": tuple(s["per_row"]),
-                                  "fill": tuple(s["fill"]) if isinstance(s["fill"], list) else s["fill"]})
-                     for s in meta["specs"]]
+            specs = [
+                FieldSpec(
+                    **{
+                        **s,
+                        "elem": tuple(s["elem"]),
+                        "per_row": tuple(s["per_row"]),
+                        "fill": tuple(s["fill"]) if isinstance(s["fill"], list) else s["fill"],
+                    }
+                )
+                for s in meta["specs"]
+            ]
             sh_degree = int(meta["sh_degree"])
         except (ValueError, KeyError, TypeError) as e:
             raise DataError(f"{path}: malformed particle store metadata ({e})") from None
@@ -449,7 +457,9 @@ class ParticleStore:
         for name, arr in state.items():
             expect = store.specs[name].row_shape()
             if arr.shape[1:] != expect:
-                raise DataError(f"{path}: field '{name}' has rows of shape {list(arr.shape[1:])}, expected {list(expect)}")
+                raise DataError(
+                    f"{path}: field '{name}' has rows of shape {list(arr.shape[1:])}, expected {list(expect)}"
+                )
         try:
             store.load_state_dict(state)
         except CausalGSError as e:

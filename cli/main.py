@@ -77,8 +77,9 @@ def synth(name, out, views, frames, resolution, background, seed, force):
     from causalgs.synth import generate
 
     bg = _parse_rgb(background, "--background")
-    summary = generate(name, out, views=views, frames=frames, resolution=resolution, background=bg, seed=seed,
-                       overwrite=force)
+    summary = generate(
+        name, out, views=views, frames=frames, resolution=resolution, background=bg, seed=seed, overwrite=force
+    )
     click.echo(summary)
 
 

@@ -39,8 +39,18 @@ def _check_options(name, views, frames, resolution, background) -> tuple[float, 
     return bg
 
 
-def generate(name: str, out, *, views: int = 20, frames: int = 89, resolution: int = 128,
-             background=(1.0, 1.0, 1.0), seed: int = 0, overwrite: bool = False, progress: bool = True) -> str:
+def generate(
+    name: str,
+    out,
+    *,
+    views: int = 20,
+    frames: int = 89,
+    resolution: int = 128,
+    background=(1.0, 1.0, 1.0),
+    seed: int = 0,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> str:
     """Write the built-in scene ``name`` into ``out`` and return a short human summary.
 
     The result depends only on the arguments (same seed, same bytes). Raises :class:`CausalGSError` with one line
@@ -50,8 +60,10 @@ def generate(name: str, out, *, views: int = 20, frames: int = 89, resolution: i
     bg = _check_options(name, views, frames, resolution, background)
     out = Path(out)
     scene = SCENES[name](views=views, frames=frames, resolution=resolution, seed=seed)
-    options = {"seed": seed, "options": {"views": views, "frames": frames, "resolution": resolution,
-                                         "background": list(bg), "seed": seed}}
+    options = {
+        "seed": seed,
+        "options": {"views": views, "frames": frames, "resolution": resolution, "background": list(bg), "seed": seed},
+    }
     counts = write_dataset(out, scene, background=bg, overwrite=overwrite, progress=progress, options=options)
     elapsed = time.perf_counter() - start
     return (

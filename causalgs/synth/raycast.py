@@ -13,6 +13,7 @@ ray never hits the surface it starts on.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,6 +36,17 @@ def rotation_exp(omega) -> np.ndarray:
     k = w / theta
     kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
     return np.eye(3) + np.sin(theta) * kx + (1.0 - np.cos(theta)) * (kx @ kx)
+
+
+def _quiet(fn):
+    """Silence the overflow warnings of near-parallel rays (their ±huge slab distances are handled as misses)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            return fn(*args, **kwargs)
+
+    return wrapper
 
 
 def _first_positive(t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
@@ -63,6 +75,7 @@ class Sphere:
     radius: float
     part: int = 0
 
+    @_quiet
     def intersect(self, o, d):
         t = sphere_hits(o, d, self.center, self.radius)
         p = o + np.where(np.isfinite(t), t, 0.0)[..., None] * d
@@ -70,6 +83,10 @@ class Sphere:
 
     def contains(self, p, tol: float = 1e-6) -> np.ndarray:
         return np.linalg.norm(p - np.asarray(self.center), axis=-1) < self.radius - tol
+
+    def bsphere(self) -> tuple[np.ndarray, float]:
+        """Centre and radius of a sphere enclosing the primitive (the cull test before the exact one)."""
+        return np.asarray(self.center, dtype=np.float64), float(self.radius)
 
     def area(self) -> float:
         return 4.0 * np.pi * self.radius**2
@@ -106,23 +123,32 @@ class Box(_Local):
     rotation: np.ndarray | None = None
     part: int = 0
 
+    @_quiet
     def intersect(self, o, d):
         ol, dl = self._to_local(o, d)
         h = np.asarray(self.half, dtype=np.float64)
-        # A zero direction component would give 0/0; a tiny same-signed stand-in gives ±huge slabs instead.
-        dl = np.where(np.abs(dl) < 1e-300, 1e-300, dl)
-        inv = 1.0 / dl
-        t1, t2 = (-h - ol) * inv, (h - ol) * inv
-        tlo, thi = np.minimum(t1, t2), np.maximum(t1, t2)
-        axis = np.argmax(tlo, axis=-1)
-        tmin, tmax = np.max(tlo, axis=-1), np.min(thi, axis=-1)
+        # Per-axis slabs, written component by component: numpy reductions over a length-3 axis are slow.
+        tmin, tmax = np.full(dl.shape[:-1], -np.inf), np.full(dl.shape[:-1], np.inf)
+        axis = np.zeros(dl.shape[:-1], dtype=np.int64)
+        for i in range(3):
+            # A zero direction component would give 0/0; a tiny same-signed stand-in gives ±huge slabs instead.
+            di = dl[..., i]
+            inv = 1.0 / np.where(np.abs(di) < 1e-300, 1e-300, di)
+            t1, t2 = (-h[i] - ol[..., i]) * inv, (h[i] - ol[..., i]) * inv
+            lo = np.minimum(t1, t2)
+            later = lo > tmin
+            axis = np.where(later, i, axis)
+            tmin = np.where(later, lo, tmin)
+            tmax = np.minimum(tmax, np.maximum(t1, t2))
         hit = tmax >= np.maximum(tmin, EPS)
         t = np.where(hit, np.where(tmin > EPS, tmin, tmax), np.inf)
         # Entering through the face of the slab that was crossed last: normal against the ray on that axis.
-        n = np.zeros_like(ol)
-        sign = -np.sign(np.take_along_axis(dl, axis[..., None], axis=-1))[..., 0]
-        np.put_along_axis(n, axis[..., None], sign[..., None], axis=-1)
+        sign = -np.sign(np.take_along_axis(dl, axis[..., None], axis=-1))
+        n = np.where(np.arange(3) == axis[..., None], sign, 0.0)
         return t, n @ _as_rot(self.rotation).T
+
+    def bsphere(self) -> tuple[np.ndarray, float]:
+        return np.asarray(self.center, dtype=np.float64), float(np.linalg.norm(self.half))
 
     def contains(self, p, tol: float = 1e-6) -> np.ndarray:
         pl = (p - np.asarray(self.center)) @ _as_rot(self.rotation)
@@ -159,6 +185,7 @@ class Cylinder(_Local):
     rotation: np.ndarray | None = None
     part: int = 0
 
+    @_quiet
     def intersect(self, o, d):
         ol, dl = self._to_local(o, d)
         r, hh = self.radius, self.half_height
@@ -200,6 +227,9 @@ class Cylinder(_Local):
     def bound(self) -> float:
         return float(np.linalg.norm(self.center) + np.hypot(self.radius, self.half_height))
 
+    def bsphere(self) -> tuple[np.ndarray, float]:
+        return np.asarray(self.center, dtype=np.float64), float(np.hypot(self.radius, self.half_height))
+
     def sample(self, rng: np.random.Generator, n: int):
         r, hh = self.radius, self.half_height
         side_area, cap_area = 4.0 * np.pi * r * hh, np.pi * r * r
@@ -232,21 +262,46 @@ class Hit:
         return np.isfinite(self.t)
 
 
+def _reaching(o, d, dd, center, radius) -> np.ndarray:
+    """Indices of rays that reach the sphere (``center``, ``radius``): the cheap test before an exact one.
+
+    ``o`` is one shared origin [3] or [N, 3]; ``dd`` holds the squared lengths of the directions ``d`` [N, 3].
+    """
+    oc = o - center
+    radius = radius * (1.0 + 1e-9) + 1e-12  # never cull a ray that grazes the primitive
+    if oc.ndim == 1:
+        b, cc = d @ oc, float(oc @ oc) - radius * radius
+    else:
+        b = np.einsum("ij,ij->i", d, oc)
+        cc = np.einsum("ij,ij->i", oc, oc) - radius * radius
+    disc = b * b - dd * cc
+    return np.flatnonzero((disc >= 0.0) & (np.sqrt(np.maximum(disc, 0.0)) - b > EPS * dd))
+
+
 def cast(o, d, prims, obj: int = 1) -> Hit:
-    """Nearest hit of rays (``o``, ``d`` broadcast to [..., 3]) with the union of ``prims`` (one object ``obj``)."""
-    d = np.asarray(d, dtype=np.float64)
-    o = np.broadcast_to(np.asarray(o, dtype=np.float64), d.shape)
-    best = np.full(d.shape[:-1], np.inf)
+    """Nearest hit of rays with the union of ``prims`` (one object ``obj``).
+
+    ``d`` is [N, 3]; ``o`` is [N, 3] or one shared origin [3] (a pinhole camera: much cheaper). Each primitive is
+    tested exactly only on the rays that reach its bounding sphere.
+    """
+    d = np.asarray(d, dtype=np.float64).reshape(-1, 3)
+    o = np.asarray(o, dtype=np.float64)
+    shared = o.ndim == 1
+    dd = np.einsum("ij,ij->i", d, d)
+    best = np.full(len(d), np.inf)
     normal = np.zeros(d.shape)
-    part = np.full(d.shape[:-1], -1, dtype=np.int64)
+    part = np.full(len(d), -1, dtype=np.int64)
     for prim in prims:
-        t, n = prim.intersect(o, d)
-        closer = t < best
-        best = np.where(closer, t, best)
-        normal = np.where(closer[..., None], n, normal)
-        part = np.where(closer, prim.part, part)
+        center, radius = prim.bsphere()
+        idx = _reaching(o, d, dd, center, radius)
+        if not len(idx):
+            continue
+        t, n = prim.intersect(o if shared else o[idx], d[idx])
+        closer = t < best[idx]
+        sel = idx[closer]
+        best[sel], normal[sel], part[sel] = t[closer], n[closer], prim.part
     hit = np.isfinite(best)
-    point = o + np.where(hit, best, 0.0)[..., None] * d
+    point = o + np.where(hit, best, 0.0)[:, None] * d
     return Hit(best, normal, point, part, np.where(hit, obj, 0))
 
 
@@ -263,22 +318,36 @@ class RigidBody:
         self.radius = max(p.bound() for p in self.prims)
 
     def cast(self, o, d, R, c) -> Hit:
-        """Hits of world rays; ``point`` is in BODY coordinates (for solid textures), ``normal`` in WORLD ones."""
+        """Hits of world rays; ``point`` is in BODY coordinates (for solid textures), ``normal`` in WORLD ones.
+
+        ``d`` is [..., 3]; ``o`` is one shared origin [3] or broadcasts with ``d``. Rays are culled against the
+        bounding sphere in the world frame (it does not turn with the body); only the survivors are moved into the
+        body frame and tested against the primitives.
+        """
         R = np.asarray(R, dtype=np.float64)
+        c = np.asarray(c, dtype=np.float64)
         d = np.asarray(d, dtype=np.float64)
-        o = np.broadcast_to(np.asarray(o, dtype=np.float64), d.shape)
-        ob, db = (o - np.asarray(c, dtype=np.float64)) @ R, d @ R  # R^T x for row vectors
         shape = d.shape[:-1]
-        ob, db = ob.reshape(-1, 3), db.reshape(-1, 3)
-        idx = np.flatnonzero(np.isfinite(sphere_hits(ob, db, (0.0, 0.0, 0.0), self.radius)))
-        t = np.full(len(db), np.inf)
-        normal, point = np.zeros((len(db), 3)), np.zeros((len(db), 3))
-        part, obj = np.full(len(db), -1, dtype=np.int64), np.zeros(len(db), dtype=np.int64)
+        dw = d.reshape(-1, 3)
+        o = np.asarray(o, dtype=np.float64)
+        shared = o.ndim == 1
+        if not shared:
+            o = np.broadcast_to(o, d.shape).reshape(-1, 3)
+        idx = _reaching(o, dw, np.einsum("ij,ij->i", dw, dw), c, self.radius)
+        t = np.full(len(dw), np.inf)
+        normal, point = np.zeros((len(dw), 3)), np.zeros((len(dw), 3))
+        part, obj = np.full(len(dw), -1, dtype=np.int64), np.zeros(len(dw), dtype=np.int64)
         if len(idx):
-            h = cast(ob[idx], db[idx], self.prims, self.obj)
+            ob = (o - c) @ R if shared else (o[idx] - c) @ R  # R^T x for row vectors
+            h = cast(ob, dw[idx] @ R, self.prims, self.obj)
             t[idx], normal[idx], point[idx], part[idx], obj[idx] = h.t, h.normal @ R.T, h.point, h.part, h.obj
-        return Hit(t.reshape(shape), normal.reshape(*shape, 3), point.reshape(*shape, 3), part.reshape(shape),
-                   obj.reshape(shape))
+        return Hit(
+            t.reshape(shape),
+            normal.reshape(*shape, 3),
+            point.reshape(*shape, 3),
+            part.reshape(shape),
+            obj.reshape(shape),
+        )
 
     def contains(self, p, tol: float = 1e-6) -> np.ndarray:
         """Whether body-frame points lie strictly inside any primitive."""

@@ -24,7 +24,7 @@ from causalgs.synth.writer import SynthScene
 FPS = 24.0
 FOV = 0.6911112070083618  # camera_angle_x of the D-NeRF / NVFi Blender scenes
 ELEVATIONS_DEG = (18.0, 38.0)  # alternated around the ring
-FILL = 0.85  # the body's enclosing sphere spans at most this fraction of the half field of view
+FILL = 0.9  # the body stays inside this fraction of the image (in tan-space about the centre) at every frame
 N_POINTS = 2000
 LIGHT = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
 AMBIENT = 0.35
@@ -52,7 +52,7 @@ def _fan(tilt: np.ndarray) -> RigidBody:
         # Blade frame: long axis radial, pitched 25 degrees about it (a fan, not a flat star).
         pitch = rotation_exp(radial * math.radians(25.0))
         frame = pitch @ np.stack([radial, np.cross([0.0, 0.0, 1.0], radial), [0.0, 0.0, 1.0]], axis=1)
-        prims.append(Box(tuple(tilt @ (0.62 * radial)), (0.5, 0.12, 0.03), tilt @ frame, part=1 + j))
+        prims.append(Box(tuple(tilt @ (0.62 * radial)), (0.45, 0.2, 0.05), tilt @ frame, part=1 + j))
     prims.append(Cylinder((0.0, 0.0, 0.0), 0.07, 0.42, tilt, part=4))
     return RigidBody(prims, obj=1)
 
@@ -83,10 +83,10 @@ class SpinScene:
         self.c0 = -0.5 * self.duration * self.velocity  # the path is centred on the origin, where cameras look
         self.palette = _palette(rng, len(PART_NAMES))
         self.checker_offset = rng.uniform(0.0, CHECKER, size=3)
-        # Cameras: a ring at a distance where the sphere enclosing the body over the whole path always fits.
-        self.enclosing_radius = self.body.radius + 0.5 * self.duration * float(np.linalg.norm(self.velocity))
-        self.distance = self.enclosing_radius / math.sin(FILL * FOV / 2.0)
+        # Cameras: a ring at the closest distance where the body stays in frame over the whole sequence everywhere.
+        self.distance = self._fit_distance()
         self.cameras = [self._camera(i) for i in range(views)]
+        self._rays: dict[int, np.ndarray] = {}
         pts, nrm, part = self.body.sample_surface(rng, N_POINTS)
         self.body_points, self.body_normals, self.part_ids = pts, nrm, part
 
@@ -100,16 +100,62 @@ class SpinScene:
         t = k / self.fps
         return rotation_exp(self.omega * t), self.c0 + self.velocity * t
 
-    def _camera(self, i: int) -> Camera:
+    def _eye_direction(self, i: int) -> np.ndarray:
         az = 2.0 * math.pi * i / self.views
         el = math.radians(ELEVATIONS_DEG[i % len(ELEVATIONS_DEG)])
-        eye = self.distance * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
-        return Camera.from_blender(look_at(eye, (0.0, 0.0, 0.0)), self.resolution, self.resolution, fov_x=FOV)
+        return np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+
+    def _camera(self, i: int) -> Camera:
+        c2w = look_at(self.distance * self._eye_direction(i), (0.0, 0.0, 0.0))
+        return Camera.from_blender(c2w, self.resolution, self.resolution, fov_x=FOV)
+
+    def _fit_distance(self) -> float:
+        """The smallest ring radius at which every view sees the whole body in frame at every frame.
+
+        Boxes are tested by their corners (a box is inside the convex frustum iff its corners are), the hub and the
+        axle by bounding spheres; the frustum is the image shrunk to ``FILL``. Bisection: the fit is monotone in
+        the distance because every camera looks at the centre of the path.
+        """
+        local, radii = [], []
+        for prim in self.body.prims:
+            if isinstance(prim, Box):
+                signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64)
+                local.append((signs * np.asarray(prim.half)) @ prim.rotation.T + np.asarray(prim.center))
+                radii.append(np.zeros(8))
+            else:
+                centre, r = prim.bsphere()
+                local.append(centre[None])
+                radii.append(np.array([r]))
+        pts_b, radii = np.concatenate(local), np.concatenate(radii)
+        poses = [self.pose(k) for k in range(self.frames)]
+        pts = np.concatenate([pts_b @ R.T + c for R, c in poses])  # [F*M, 3]
+        rad = np.tile(radii, self.frames)
+        tan_a = FILL * math.tan(FOV / 2.0)
+        norm = math.sqrt(1.0 + tan_a * tan_a)
+
+        def fits(dist: float) -> bool:
+            for i in range(self.views):
+                c2w = look_at(dist * self._eye_direction(i), (0.0, 0.0, 0.0))
+                rel = pts - c2w[:3, 3]
+                x, y, z = rel @ c2w[:3, 0], rel @ c2w[:3, 1], -(rel @ c2w[:3, 2])  # depth along the view
+                # Distance to the four frustum side planes |x| = z tan_a, |y| = z tan_a must exceed the radius.
+                if np.any((z * tan_a - np.maximum(np.abs(x), np.abs(y))) / norm < rad):
+                    return False
+            return True
+
+        lo, hi = self.body.radius, 2.0 * self.body.radius
+        while not fits(hi):
+            lo, hi = hi, 2.0 * hi
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (lo, mid) if fits(mid) else (mid, hi)
+        return hi
 
     # -- appearance -----------------------------------------------------------------------------------------------
     def albedo(self, p_body: np.ndarray, part: np.ndarray) -> np.ndarray:
         """Solid texture: the part's colour times a 3D checker in body coordinates."""
-        cells = np.floor((p_body + self.checker_offset) / CHECKER).astype(np.int64).sum(axis=-1)
+        q = np.floor((p_body + self.checker_offset) / CHECKER)
+        cells = (q[..., 0] + q[..., 1] + q[..., 2]).astype(np.int64)
         return self.palette[np.clip(part, 0, None)] * np.where(cells % 2 == 0, 1.0, 0.55)[..., None]
 
     def shade(self, p_body, part, normal_world) -> np.ndarray:
@@ -125,20 +171,34 @@ class SpinScene:
         subs = [np.stack([u + ox, v + oy], axis=-1) for oy in offs for ox in offs]
         return np.stack([*subs, np.stack([u + 0.5, v + 0.5], axis=-1)])
 
+    def _directions(self, i: int) -> np.ndarray:
+        """World ray directions of camera ``i`` for every sample, cached while they fit in ~256 MB in all."""
+        cached = self._rays.get(i)
+        if cached is not None:
+            return cached
+        uv = self._sample_uv()
+        _, d = self.cameras[i].rays(uv)
+        if d.nbytes * self.views <= 256 * 2**20:
+            self._rays[i] = d
+        return d
+
     def render(self, k: int):
         """Yield ``(rgb, alpha, ids)`` for every camera at frame ``k`` (see :class:`SynthScene`)."""
         R, c = self.pose(k)
-        uv = self._sample_uv()
         n_sub = SUPERSAMPLE * SUPERSAMPLE
-        for cam in self.cameras:
-            _, d = cam.rays(uv)
+        for i, cam in enumerate(self.cameras):
+            d = self._directions(i)
             hit = self.body.cast(cam.center, d, R, c)
-            covered = hit.mask[:n_sub]
-            colour = np.where(covered[..., None], self.shade(hit.point[:n_sub], hit.part[:n_sub], hit.normal[:n_sub]),
-                              0.0)
-            count = covered.sum(axis=0)
-            rgb = colour.sum(axis=0) / np.maximum(count, 1)[..., None]
-            yield rgb, count / n_sub, hit.obj[n_sub].astype(np.uint8)
+            # Shade only the covered subsamples, then average them per pixel (straight colour, not premultiplied).
+            sub = np.flatnonzero(hit.mask[:n_sub].ravel())
+            px = sub % (self.resolution * self.resolution)
+            flat = (hit.point.reshape(-1, 3)[sub], hit.part.ravel()[sub], hit.normal.reshape(-1, 3)[sub])
+            colour = self.shade(*flat)
+            count = np.bincount(px, minlength=self.resolution**2).astype(np.float64)
+            rgb = np.stack([np.bincount(px, colour[:, j], minlength=self.resolution**2) for j in range(3)], axis=-1)
+            rgb /= np.maximum(count, 1.0)[:, None]
+            shape = (self.resolution, self.resolution)
+            yield rgb.reshape(*shape, 3), (count / n_sub).reshape(shape), hit.obj[n_sub].astype(np.uint8)
 
     # -- ground truth ---------------------------------------------------------------------------------------------
     def motion(self) -> dict[str, np.ndarray]:
@@ -175,21 +235,33 @@ class SpinScene:
                 "duration_s": self.duration,
                 "gravity": None,
             },
-            "objects": [{
-                "id": 1,
-                "name": "fan",
-                "kind": "rigid",
-                "parts": [
-                    {"part": j, "name": name, "shape": type(p).__name__.lower(), "colour": self.palette[j].tolist()}
-                    for j, (name, p) in enumerate(zip(PART_NAMES, self.body.prims, strict=True))
-                ],
-                "bounding_radius": self.body.radius,
-            }],
-            "cameras": {"distance": self.distance, "elevations_deg": list(ELEVATIONS_DEG), "target": [0.0, 0.0, 0.0],
-                        "up": [0.0, 0.0, 1.0], "enclosing_radius": self.enclosing_radius},
-            "appearance": {"texture": "per-part colour x 3D checker in body coordinates", "checker_size": CHECKER,
-                           "checker_offset": self.checker_offset.tolist(), "light_direction": LIGHT.tolist(),
-                           "ambient": AMBIENT, "shading": "lambertian"},
+            "objects": [
+                {
+                    "id": 1,
+                    "name": "fan",
+                    "kind": "rigid",
+                    "parts": [
+                        {"part": j, "name": name, "shape": type(p).__name__.lower(), "colour": self.palette[j].tolist()}
+                        for j, (name, p) in enumerate(zip(PART_NAMES, self.body.prims, strict=True))
+                    ],
+                    "bounding_radius": self.body.radius,
+                }
+            ],
+            "cameras": {
+                "distance": self.distance,
+                "elevations_deg": list(ELEVATIONS_DEG),
+                "target": [0.0, 0.0, 0.0],
+                "up": [0.0, 0.0, 1.0],
+                "fit": f"closest ring radius keeping the whole body inside {FILL:g} of every image at every frame",
+            },
+            "appearance": {
+                "texture": "per-part colour x 3D checker in body coordinates",
+                "checker_size": CHECKER,
+                "checker_offset": self.checker_offset.tolist(),
+                "light_direction": LIGHT.tolist(),
+                "ambient": AMBIENT,
+                "shading": "lambertian",
+            },
             "supersampling": SUPERSAMPLE,
             "masks": "object ids at pixel centres",
             "n_points": len(self.body_points),
@@ -199,8 +271,9 @@ class SpinScene:
         R0, c0 = self.pose(0)
         xyz = self.body_points @ R0.T + c0
         rgb = self.shade(self.body_points, self.part_ids, self.body_normals @ R0.T)
-        return SynthScene("spin", self.cameras, self.fps, self.frames, self.render, xyz, rgb, self.motion(),
-                          self.meta())
+        return SynthScene(
+            "spin", self.cameras, self.fps, self.frames, self.render, xyz, rgb, self.motion(), self.meta()
+        )
 
 
 def build(*, views: int, frames: int, resolution: int, seed: int) -> SynthScene:

@@ -3,12 +3,12 @@
 Every built-in scene goes through this one writer so that all of them share the same layout and split protocol (see
 DESIGN.md "Data conventions")::
 
-    OUT/transforms_{train,val,test}.json     camera_angle_x, fps, background, frames[file_path, time, matrix, view, frame]
-    OUT/{train,val,test}/r_VVV_FFF.png       RGBA, alpha = pixel coverage, RGB = background where alpha = 0
-    OUT/points3d.ply                         surface samples at t = 0 with colours (an SfM-like initial cloud)
-    OUT/gt/masks/r_VVV_FFF.png               uint8 object ids at pixel centres, for every view and frame
-    OUT/gt/motion.npz                        the true motion (scene-specific arrays)
-    OUT/gt/meta.json                         options, protocol, motion law, object table, renderer
+    OUT/transforms_{train,val,test}.json camera_angle_x, fps, background, frames (file_path, time, matrix, view, frame)
+    OUT/{train,val,test}/r_VVV_FFF.png   RGBA, alpha = pixel coverage, RGB = background where alpha = 0
+    OUT/points3d.ply                     surface samples at t = 0 with colours (an SfM-like initial cloud)
+    OUT/gt/masks/r_VVV_FFF.png           uint8 object ids at pixel centres, for every view and frame
+    OUT/gt/motion.npz                    the true motion (scene-specific arrays)
+    OUT/gt/meta.json                     options, protocol, motion law, object table, renderer
 
 The protocol scales the 20-view / 89-frame benchmark: a few views spread around the ring are held out for
 interpolation (val), the last quarter of the frames is kept for extrapolation (test, every view).
@@ -38,7 +38,7 @@ _IMAGE_NAME = re.compile(r"^r_\d{3,}_\d{3,}\.png$")
 
 def _round_half_up(x: float) -> int:
     """Rounding that does not depend on Python's banker's rounding of exact halves."""
-    return int(math.floor(x + 0.5))
+    return math.floor(x + 0.5)
 
 
 @dataclass(frozen=True)
@@ -146,8 +146,9 @@ def _progress(enabled: bool) -> Progress:
     )
 
 
-def write_dataset(out, scene: SynthScene, *, background, overwrite: bool = False, progress: bool = True,
-                  options: dict | None = None) -> dict:
+def write_dataset(
+    out, scene: SynthScene, *, background, overwrite: bool = False, progress: bool = True, options: dict | None = None
+) -> dict:
     """Render ``scene`` into ``out`` and return the protocol counts; every file is written atomically."""
     out = Path(out)
     check_out(out, overwrite)
@@ -169,18 +170,22 @@ def write_dataset(out, scene: SynthScene, *, background, overwrite: bool = False
                 write_image(img_path, encode_rgba(rgb, alpha, bg))
                 write_image(mask_path, np.ascontiguousarray(ids, dtype=np.uint8))
                 written.update((img_path, mask_path))
-                entries[split].append({
-                    "file_path": f"./{split}/{stem}",
-                    "time": float(times[k]),
-                    "transform_matrix": scene.cameras[v].c2w_opengl.tolist(),
-                    "view": v,
-                    "frame": k,
-                })
+                entries[split].append(
+                    {
+                        "file_path": f"./{split}/{stem}",
+                        "time": float(times[k]),
+                        "transform_matrix": scene.cameras[v].c2w_opengl.tolist(),
+                        "view": v,
+                        "frame": k,
+                    }
+                )
             bar.advance(task)
 
     for split, frs in entries.items():  # frame-major order, as rendered
-        write_json(out / f"transforms_{split}.json",
-                   {"camera_angle_x": fov, "fps": float(scene.fps), "background": bg, "frames": frs})
+        write_json(
+            out / f"transforms_{split}.json",
+            {"camera_angle_x": fov, "fps": float(scene.fps), "background": bg, "frames": frs},
+        )
     write_points_ply(out / "points3d.ply", np.asarray(scene.points, dtype=np.float32), scene.point_colors)
     write_npz(out / "gt" / "motion.npz", **scene.motion)
     meta = {
