@@ -163,13 +163,7 @@ class ParticleStore:
         dup = {nm for nm in names if names.count(nm) > 1}
         if dup:
             raise CausalGSError(f"duplicate particle field name(s): {', '.join(sorted(dup))}")
-        for s in specs:
-            if s.dtype not in ("real", "i32"):
-                raise CausalGSError(f"field '{s.name}': dtype '{s.dtype}' must be 'real' or 'i32'")
-            if s.grad and s.dtype != "real":
-                raise CausalGSError(f"field '{s.name}': only real fields can have gradients")
-            if len(s.elem) > 2 or len(s.per_row) > 1:
-                raise CausalGSError(f"field '{s.name}': at most a matrix element and one per-row axis")
+        self._validate_specs(specs)
         self.sh_degree = sh_degree
         self.specs: dict[str, FieldSpec] = {s.name: s for s in specs}
         self.version = 0
@@ -177,6 +171,16 @@ class ParticleStore:
         self._fields: dict[str, object] = {}
         self._tree = None
         self._allocate(bucket_capacity(capacity))
+
+    @staticmethod
+    def _validate_specs(specs: list[FieldSpec]) -> None:
+        for s in specs:
+            if s.dtype not in ("real", "i32"):
+                raise CausalGSError(f"field '{s.name}': dtype '{s.dtype}' must be 'real' or 'i32'")
+            if s.grad and s.dtype != "real":
+                raise CausalGSError(f"field '{s.name}': only real fields can have gradients")
+            if len(s.elem) > 2 or len(s.per_row) > 1:
+                raise CausalGSError(f"field '{s.name}': at most a matrix element and one per-row axis")
 
     # -- allocation ---------------------------------------------------------------------------------------------
     def _allocate(self, capacity: int) -> None:
@@ -245,6 +249,38 @@ class ParticleStore:
 
     def __repr__(self) -> str:
         return f"ParticleStore(n={self._n}, capacity={self._capacity}, sh_degree={self.sh_degree})"
+
+    def add_fields(self, specs: Iterable[FieldSpec]) -> bool:
+        """Register fields a subsystem needs (e.g. the rasterizer's projected 2D means); idempotent.
+
+        New fields take their fill value in every row; existing rows of every field are kept. Adding a field
+        reallocates the store (a new :attr:`version`), so subsystems register theirs once, before their first
+        kernel call. Returns whether anything was added. A name already registered with another layout is an error.
+        """
+        self._check_alive()
+        new = []
+        for s in specs:
+            old = self.specs.get(s.name)
+            if old is None:
+                new.append(s)
+            elif (old.elem, old.per_row, old.dtype, old.grad) != (s.elem, s.per_row, s.dtype, s.grad):
+                raise CausalGSError(f"particle field '{s.name}' is already registered with another layout")
+        if not new:
+            return False
+        keep = {name: self.to_torch(name) for name in self.specs}
+        before = dict(self.specs)
+        try:
+            self.specs.update({s.name: s for s in new})
+            self._validate_specs(list(self.specs.values()))
+        except CausalGSError:
+            self.specs = before
+            raise
+        self._allocate(self._capacity)
+        for name, t in keep.items():
+            self._write(name, t, 0)
+        for s in new:
+            self._fill_rows(s.name, 0, self._n)
+        return True
 
     # -- size changes -------------------------------------------------------------------------------------------
     def resize(self, n: int) -> None:
@@ -375,12 +411,12 @@ class ParticleStore:
         fill = torch.tensor(np.array(spec.fill_array()), dtype=self._torch_dtype(name))
         self._write(name, fill.expand(stop - start, *fill.shape).contiguous(), start)
 
-    def zero_grad(self) -> None:
-        """Clear every adjoint field."""
+    def zero_grad(self, names: Iterable[str] | None = None) -> None:
+        """Clear the adjoint fields of ``names`` (default: every field that has one)."""
         self._check_alive()
-        for name, s in self.specs.items():
-            if s.grad:
-                self._fields[name].grad.fill(0)
+        for name in self.specs if names is None else names:
+            if self.specs[name].grad:
+                self.field(name).grad.fill(0)
 
     # -- persistence --------------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, np.ndarray]:

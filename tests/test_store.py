@@ -195,3 +195,20 @@ def test_bad_specs(ti64):
         ParticleStore(extra=(FieldSpec("label", (), dtype="i32"),))
     with pytest.raises(CausalGSError, match="sh_degree"):
         ParticleStore(sh_degree=4)
+
+
+def test_add_fields_keeps_rows(store):
+    before = store.state_dict()
+    version = store.version
+    spec = FieldSpec("mean2d", (2,), fill=(-1.0, 2.0), doc="projected mean")
+    assert store.add_fields([spec]) is True
+    assert store.version == version + 1
+    assert store.add_fields([spec]) is False  # idempotent
+    for name, val in before.items():
+        np.testing.assert_array_equal(store.to_numpy(name), val, err_msg=name)
+    np.testing.assert_array_equal(store.to_numpy("mean2d"), np.tile([-1.0, 2.0], (10, 1)))
+    with pytest.raises(CausalGSError, match="another layout"):
+        store.add_fields([FieldSpec("mean2d", (3,))])
+    with pytest.raises(CausalGSError, match="only real fields"):
+        store.add_fields([FieldSpec("tile", (), dtype="i32")])
+    assert "tile" not in store.specs

@@ -1,0 +1,115 @@
+"""Dense plain-torch reference of the rasterizer's maths: every Gaussian against every pixel.
+
+Used only by tests and the benchmark, to hold the Taichi kernels to the same numbers forward and backward (torch
+autograd differentiates this file). It follows gsplat's conventions, as the kernels do:
+
+- covariance Σ = R S Sᵀ Rᵀ with R from the normalised quaternion (w, x, y, z) and S = diag(exp(scale_raw));
+- EWA projection with the perspective Jacobian evaluated at a position clamped to 1.3× the field of view (so far
+  off-screen Gaussians do not blow up), plus a 0.3 px² low-pass dilation;
+- Gaussians closer than ``NEAR`` to the camera plane are dropped;
+- colour = SH(view direction) + 0.5, clamped at 0;
+- alpha = min(0.99, opacity · exp(−σ)), σ = ½ dᵀ Σ₂D⁻¹ d with d = mean2d − pixel centre (centres at +0.5);
+  alpha < 1/255 is skipped; compositing front to back stops *before* a Gaussian that would bring the transmittance
+  to ≤ 1e-4.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from causalgs.render.sh import eval_sh_torch
+
+NEAR = 0.01
+EPS2D = 0.3
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.99
+T_MIN = 1e-4
+
+
+def quat_scale_to_cov(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """Covariances [N, 3, 3] from quaternions [N, 4] (w, x, y, z; any norm) and scales [N, 3] (activated)."""
+    w, x, y, z = (quats / quats.norm(dim=-1, keepdim=True)).unbind(-1)
+    R = torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(-1, 3, 3)  # fmt: skip
+    M = R * scales[:, None, :]
+    return M @ M.transpose(1, 2)
+
+
+def project(means, covs, viewmat, K, width: int, height: int):
+    """EWA projection. Returns mean2d [N, 2], cov2d [N, 2, 2] (dilated), depth [N] and a validity mask [N]."""
+    R, t = viewmat[:3, :3], viewmat[:3, 3]
+    p = means @ R.T + t
+    cov_c = R @ covs @ R.T
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    x, y, z = p.unbind(-1)
+    valid = z > NEAR
+    zs = torch.where(valid, z, torch.ones_like(z))
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    tx = zs * torch.clamp(x / zs, -(cx / fx + 0.3 * tan_x), (width - cx) / fx + 0.3 * tan_x)
+    ty = zs * torch.clamp(y / zs, -(cy / fy + 0.3 * tan_y), (height - cy) / fy + 0.3 * tan_y)
+    zero = torch.zeros_like(zs)
+    J = torch.stack(
+        [fx / zs, zero, -fx * tx / zs**2, zero, fy / zs, -fy * ty / zs**2], dim=-1
+    ).reshape(-1, 2, 3)
+    cov2d = J @ cov_c @ J.transpose(1, 2) + EPS2D * torch.eye(2, dtype=means.dtype)
+    mean2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], dim=-1)
+    det = cov2d[:, 0, 0] * cov2d[:, 1, 1] - cov2d[:, 0, 1] ** 2
+    return mean2d, cov2d, z, valid & (det > 0)
+
+
+def rasterize_reference(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales_raw: torch.Tensor,
+    opacities_raw: torch.Tensor,
+    sh: torch.Tensor,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    background: torch.Tensor,
+    sh_degree: int = 3,
+    covs: torch.Tensor | None = None,
+):
+    """Render [H, W, 3] colour, [H, W] alpha and [H, W] expected depth by brute force (memory O(H·W·N)).
+
+    Arguments have the shapes of :func:`causalgs.render.rasterize`; ``covs`` [N, 3, 3] replaces quats and scales.
+    """
+    if covs is None:
+        covs = quat_scale_to_cov(quats, torch.exp(scales_raw))
+    mean2d, cov2d, depth, valid = project(means, covs, viewmat, K, width, height)
+    campos = torch.linalg.inv(viewmat)[:3, 3]
+    colors = torch.clamp(eval_sh_torch(sh, means - campos, sh_degree) + 0.5, min=0.0)
+    opac = torch.sigmoid(opacities_raw)
+
+    idx = torch.nonzero(valid).flatten()
+    idx = idx[torch.argsort(depth[idx], stable=True)]
+    a, b, c = cov2d[idx, 0, 0], cov2d[idx, 0, 1], cov2d[idx, 1, 1]
+    det = a * c - b * b
+    conic = torch.stack([c / det, -b / det, a / det], dim=-1)  # [M, 3]
+
+    v, u = torch.meshgrid(
+        torch.arange(height, dtype=means.dtype) + 0.5, torch.arange(width, dtype=means.dtype) + 0.5, indexing="ij"
+    )
+    dx = mean2d[idx, 0][None, :] - u.reshape(-1, 1)  # [P, M]
+    dy = mean2d[idx, 1][None, :] - v.reshape(-1, 1)
+    sigma = 0.5 * (conic[:, 0] * dx * dx + conic[:, 2] * dy * dy) + conic[:, 1] * dx * dy
+    alpha = torch.clamp(opac[idx] * torch.exp(-sigma), max=ALPHA_MAX)
+    alpha = torch.where((alpha >= ALPHA_MIN) & (sigma >= 0), alpha, torch.zeros_like(alpha))
+
+    one_minus = 1.0 - alpha
+    T = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), one_minus[:, :-1]], dim=1), dim=1)
+    included = (T * one_minus > T_MIN).detach()  # non-increasing along depth: a prefix, as in the kernel's loop
+    w = alpha * T * included
+    T_final = 1.0 - w.sum(dim=1)
+    rgb = w @ colors[idx] + T_final[:, None] * background[None, :]
+    acc = 1.0 - T_final
+    d_acc = w @ depth[idx]
+    exp_depth = torch.where(acc > 0, d_acc / torch.clamp(acc, min=1e-12), torch.zeros_like(acc))
+    return rgb.reshape(height, width, 3), acc.reshape(height, width), exp_depth.reshape(height, width)

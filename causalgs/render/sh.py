@@ -1,0 +1,81 @@
+"""Real spherical harmonics up to degree 3, in the basis and sign convention of 3DGS and gsplat.
+
+A Taichi function for the projection kernel and a torch twin for the reference; both evaluate the same constants on
+the unit direction from the camera centre to the Gaussian.
+"""
+
+# No `from __future__ import annotations`: Taichi 1.7 reads ti.func annotations as live objects.
+import torch
+
+from causalgs._ti import ti
+
+C0 = 0.28209479177387814
+C1 = 0.4886025119029199
+C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
+
+
+def sh_basis_torch(dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """Basis values [N, (degree + 1)²] at unit directions [N, 3]."""
+    x, y, z = dirs.unbind(-1)
+    out = [torch.full_like(x, C0)]
+    if degree >= 1:
+        out += [-C1 * y, C1 * z, -C1 * x]
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        out += [C2[0] * xy, C2[1] * yz, C2[2] * (2 * zz - xx - yy), C2[3] * xz, C2[4] * (xx - yy)]
+    if degree >= 3:
+        out += [
+            C3[0] * y * (3 * xx - yy),
+            C3[1] * xy * z,
+            C3[2] * y * (4 * zz - xx - yy),
+            C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+            C3[4] * x * (4 * zz - xx - yy),
+            C3[5] * z * (xx - yy),
+            C3[6] * x * (xx - 3 * yy),
+        ]
+    return torch.stack(out, dim=-1)
+
+
+def eval_sh_torch(sh: torch.Tensor, view: torch.Tensor, degree: int) -> torch.Tensor:
+    """Colour [N, 3] = Σ_k basis_k(view/|view|) · sh[:, k] for the first (degree + 1)² coefficients of sh [N, S, 3]."""
+    dirs = view / view.norm(dim=-1, keepdim=True)
+    basis = sh_basis_torch(dirs, degree)
+    return (basis[..., None] * sh[:, : basis.shape[-1]]).sum(dim=1)
+
+
+@ti.func
+def eval_sh(sh: ti.template(), i, d, degree: ti.template()):
+    """Σ_k basis_k(d) · sh[i, k] for unit direction ``d``; ``degree`` is static so unused terms are not compiled."""
+    c = C0 * sh[i, 0]
+    if ti.static(degree >= 1):
+        x, y, z = d[0], d[1], d[2]
+        c += -C1 * y * sh[i, 1] + C1 * z * sh[i, 2] - C1 * x * sh[i, 3]
+        if ti.static(degree >= 2):
+            xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+            c += (
+                C2[0] * xy * sh[i, 4]
+                + C2[1] * yz * sh[i, 5]
+                + C2[2] * (2 * zz - xx - yy) * sh[i, 6]
+                + C2[3] * xz * sh[i, 7]
+                + C2[4] * (xx - yy) * sh[i, 8]
+            )
+            if ti.static(degree >= 3):
+                c += (
+                    C3[0] * y * (3 * xx - yy) * sh[i, 9]
+                    + C3[1] * xy * z * sh[i, 10]
+                    + C3[2] * y * (4 * zz - xx - yy) * sh[i, 11]
+                    + C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * sh[i, 12]
+                    + C3[4] * x * (4 * zz - xx - yy) * sh[i, 13]
+                    + C3[5] * z * (xx - yy) * sh[i, 14]
+                    + C3[6] * x * (xx - 3 * yy) * sh[i, 15]
+                )
+    return c
