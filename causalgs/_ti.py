@@ -16,6 +16,7 @@ version-check network call before Taichi is loaded. Nothing initialises Taichi a
 
 from __future__ import annotations
 
+import atexit
 import os
 import sys
 from dataclasses import dataclass
@@ -106,9 +107,18 @@ def init(device: str = "cpu", precision: str = "float32", *, debug: bool = False
         print("causalgs: no CUDA or Vulkan device found; running on the CPU.", file=sys.stderr)
 
     _set_torch_threads()
+    if _generation == 0:
+        atexit.register(_shutdown)
     _generation += 1
     _runtime = Runtime(device, precision, taken, debug, str(folder), _generation)
     return _runtime
+
+
+def _shutdown() -> None:
+    """Finalise Taichi at exit: the offline kernel cache is written to disk only when the program is reset (Taichi
+    1.7 does not do it at interpreter exit; without this, every process recompiled every kernel)."""
+    if _runtime is not None:
+        ti.reset()
 
 
 def _set_torch_threads() -> None:

@@ -58,45 +58,43 @@ def project(
     degree: ti.template(),
     use_cov: ti.template(),
 ):
-    """Project Gaussians [0, n). ``intr`` = (fx, fy, cx, cy); ``campos`` = camera centre for the SH direction."""
+    """Project Gaussians [0, n). ``intr`` = (fx, fy, cx, cy); ``campos`` = camera centre for the SH direction.
+
+    Branch-free on purpose: culled Gaussians (closer than NEAR) are computed at a safe depth and masked with
+    ``ti.select``. Mutable locals inside branches make Taichi's autodiff use its AD stack, which made ``project.grad``
+    take ~45 s to compile; without them it compiles several times faster.
+    """
     for i in range(n):
         W = viewmat[0:3, 0:3]
         p = W @ x[i] + ti.Vector([viewmat[0, 3], viewmat[1, 3], viewmat[2, 3]])
         fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
-        m2 = ti.Vector([0.0, 0.0])
-        co = ti.Vector([0.0, 0.0, 0.0])
-        z = 0.0
-        o = 0.0
-        col = ti.Vector([0.0, 0.0, 0.0])
-        if p.z > NEAR:
-            cov = ti.Matrix.zero(float, 3, 3)
-            if ti.static(use_cov):
-                cov = cov3d[i]
-            else:
-                s = ti.exp(scale_raw[i])
-                M = _quat_to_rotmat(quat[i]) @ ti.Matrix([[s[0], 0.0, 0.0], [0.0, s[1], 0.0], [0.0, 0.0, s[2]]])
-                cov = M @ M.transpose()
-            cov_c = W @ cov @ W.transpose()
-            # Jacobian of the perspective map at a position clamped to 1.3x the field of view (gsplat).
-            tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
-            tx = p.z * ti.min(ti.max(p.x / p.z, -(cx / fx + 0.3 * tan_x)), (width - cx) / fx + 0.3 * tan_x)
-            ty = p.z * ti.min(ti.max(p.y / p.z, -(cy / fy + 0.3 * tan_y)), (height - cy) / fy + 0.3 * tan_y)
-            J = ti.Matrix([[fx / p.z, 0.0, -fx * tx / (p.z * p.z)], [0.0, fy / p.z, -fy * ty / (p.z * p.z)]])
-            c2 = J @ cov_c @ J.transpose()
-            a, b, c = c2[0, 0] + EPS2D, c2[0, 1], c2[1, 1] + EPS2D
-            det = a * c - b * b
-            if det > 0:
-                m2 = ti.Vector([fx * p.x / p.z + cx, fy * p.y / p.z + cy])
-                co = ti.Vector([c / det, -b / det, a / det])
-                z = p.z
-                o = 1.0 / (1.0 + ti.exp(-opacity_raw[i]))
-                d = x[i] - campos
-                col = ti.max(eval_sh(sh, i, d / d.norm(), degree) + 0.5, 0.0)
-        mean2d[i] = m2
-        conic[i] = co
-        depth[i] = z
-        opac[i] = o
-        color[i] = col
+        valid = p.z > NEAR
+        z = ti.select(valid, p.z, 1.0)
+        cov = ti.Matrix.zero(float, 3, 3)
+        if ti.static(use_cov):
+            cov = cov3d[i]
+        else:
+            s = ti.exp(scale_raw[i])
+            M = _quat_to_rotmat(quat[i]) @ ti.Matrix([[s[0], 0.0, 0.0], [0.0, s[1], 0.0], [0.0, 0.0, s[2]]])
+            cov = M @ M.transpose()
+        cov_c = W @ cov @ W.transpose()
+        # Jacobian of the perspective map at a position clamped to 1.3x the field of view (gsplat).
+        tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+        tx = z * ti.min(ti.max(p.x / z, -(cx / fx + 0.3 * tan_x)), (width - cx) / fx + 0.3 * tan_x)
+        ty = z * ti.min(ti.max(p.y / z, -(cy / fy + 0.3 * tan_y)), (height - cy) / fy + 0.3 * tan_y)
+        J = ti.Matrix([[fx / z, 0.0, -fx * tx / (z * z)], [0.0, fy / z, -fy * ty / (z * z)]])
+        c2 = J @ cov_c @ J.transpose()
+        a, b, c = c2[0, 0] + EPS2D, c2[0, 1], c2[1, 1] + EPS2D
+        det = ti.max(a * c - b * b, 1e-12)  # >= EPS2D² for a PSD covariance; the max only guards rounding
+        d = x[i] - campos
+        # +1e-20 keeps the direction (and its gradient) finite for a Gaussian at the camera centre.
+        col = ti.max(eval_sh(sh, i, d / ti.sqrt(d.dot(d) + 1e-20), degree) + 0.5, 0.0)
+        zero2, zero3 = ti.Vector([0.0, 0.0]), ti.Vector([0.0, 0.0, 0.0])
+        mean2d[i] = ti.select(valid, ti.Vector([fx * p.x / z + cx, fy * p.y / z + cy]), zero2)
+        conic[i] = ti.select(valid, ti.Vector([c / det, -b / det, a / det]), zero3)
+        depth[i] = ti.select(valid, z, 0.0)
+        opac[i] = ti.select(valid, 1.0 / (1.0 + ti.exp(-opacity_raw[i])), 0.0)
+        color[i] = ti.select(valid, col, zero3)
 
 
 @ti.kernel
@@ -133,6 +131,8 @@ def bounds(
             x1 = ti.cast(ti.min(ti.floor(m[0] + ex - 0.5), width - 1.0), ti.i32)
             y0 = ti.cast(ti.max(ti.ceil(m[1] - ey - 0.5), 0.0), ti.i32)
             y1 = ti.cast(ti.min(ti.floor(m[1] + ey - 0.5), height - 1.0), ti.i32)
+        if x0 > x1 or y0 > y1:
+            ex, ey = 0.0, 0.0
         box[i, 0] = x0
         box[i, 1] = x1
         box[i, 2] = y0

@@ -124,8 +124,9 @@ class Rasterizer:
         )
         alpha = 1.0 - T_final
         depth_img = torch.where(alpha > 0, dacc / alpha.clamp(min=1e-12), torch.zeros_like(dacc))
-        frame = Frame(view, tuple(background), deg, use_cov, s.n, gids, ranges, packed, pbox, T_final, last,
-                      self.upload)
+        frame = Frame(
+            view, tuple(background), deg, use_cov, s.n, gids, ranges, packed, pbox, T_final, last, self.upload
+        )
         self.last_frame = frame
         return rgb, alpha, depth_img, radii, frame
 
@@ -159,15 +160,16 @@ class Rasterizer:
 # ---------------------------------------------------------------------------------------------------------------------
 # The torch boundary
 # ---------------------------------------------------------------------------------------------------------------------
-_private: dict[tuple[int, int], Rasterizer] = {}
+_private: dict[int, Rasterizer] = {}
 
 
-def _scratch_rasterizer(sh_degree: int) -> Rasterizer:
-    """A private store for tensor inputs, kept across calls so kernels compile once per capacity bucket."""
-    key = (_ti.generation(), sh_degree)
+def _scratch_rasterizer() -> Rasterizer:
+    """A private degree-3 store for tensor inputs, kept across calls so kernels compile once per capacity bucket
+    (lower SH degrees are padded with zeros; the evaluated degree is a kernel constant)."""
+    key = _ti.generation()
     if key not in _private:
         _private.clear()
-        _private[key] = Rasterizer(ParticleStore(0, sh_degree=sh_degree))
+        _private[key] = Rasterizer(ParticleStore(0, sh_degree=3))
     return _private[key]
 
 
@@ -284,17 +286,19 @@ def rasterize(
         if quats is None or scales is None:
             raise CausalGSError("rasterize needs quats and scales, or covs")
         if quats.shape != (n, 4) or scales.shape != (n, 3):
-            raise CausalGSError(f"quats/scales have shapes {list(quats.shape)}/{list(scales.shape)}, expected [N, 4]/[N, 3]")
+            raise CausalGSError(
+                f"quats/scales have shapes {list(quats.shape)}/{list(scales.shape)}, expected [N, 4]/[N, 3]"
+            )
     elif covs.shape != (n, 3, 3):
         raise CausalGSError(f"covs has shape {list(covs.shape)}, expected [N, 3, 3]")
     sh_degree = deg if sh_degree is None else int(sh_degree)
     if sh_degree > deg:
         raise CausalGSError(f"sh_degree {sh_degree} needs {(sh_degree + 1) ** 2} SH coefficients, sh has {n_sh}")
     view = View.of(viewmat, K, width, height)
-    bg = tuple(float(c) for c in torch.as_tensor(background).flatten().tolist())
+    bg = tuple(float(c) for c in torch.as_tensor(background, dtype=torch.float64).flatten().tolist())
     if len(bg) != 3:
         raise CausalGSError("background must be three numbers (RGB)")
-    rast = _scratch_rasterizer(3 if deg > 0 else 0)
+    rast = _scratch_rasterizer()
     means2d = torch.zeros((n, 2), dtype=means.dtype, requires_grad=torch.is_grad_enabled())
     rgb, alpha, depth, radii = _RasterizeFunction.apply(
         means, quats, scales, opacities, sh, covs, means2d, rast, view, bg, sh_degree

@@ -54,9 +54,7 @@ def project(means, covs, viewmat, K, width: int, height: int):
     tx = zs * torch.clamp(x / zs, -(cx / fx + 0.3 * tan_x), (width - cx) / fx + 0.3 * tan_x)
     ty = zs * torch.clamp(y / zs, -(cy / fy + 0.3 * tan_y), (height - cy) / fy + 0.3 * tan_y)
     zero = torch.zeros_like(zs)
-    J = torch.stack(
-        [fx / zs, zero, -fx * tx / zs**2, zero, fy / zs, -fy * ty / zs**2], dim=-1
-    ).reshape(-1, 2, 3)
+    J = torch.stack([fx / zs, zero, -fx * tx / zs**2, zero, fy / zs, -fy * ty / zs**2], dim=-1).reshape(-1, 2, 3)
     cov2d = J @ cov_c @ J.transpose(1, 2) + EPS2D * torch.eye(2, dtype=means.dtype)
     mean2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], dim=-1)
     det = cov2d[:, 0, 0] * cov2d[:, 1, 1] - cov2d[:, 0, 1] ** 2
@@ -76,14 +74,18 @@ def rasterize_reference(
     background: torch.Tensor,
     sh_degree: int = 3,
     covs: torch.Tensor | None = None,
+    means2d_probe: torch.Tensor | None = None,
 ):
     """Render [H, W, 3] colour, [H, W] alpha and [H, W] expected depth by brute force (memory O(H·W·N)).
 
     Arguments have the shapes of :func:`causalgs.render.rasterize`; ``covs`` [N, 3, 3] replaces quats and scales.
+    ``means2d_probe`` [N, 2] (zeros) is added to the projected means, so its gradient is ∂L/∂mean2d.
     """
     if covs is None:
         covs = quat_scale_to_cov(quats, torch.exp(scales_raw))
     mean2d, cov2d, depth, valid = project(means, covs, viewmat, K, width, height)
+    if means2d_probe is not None:
+        mean2d = mean2d + means2d_probe
     campos = torch.linalg.inv(viewmat)[:3, 3]
     colors = torch.clamp(eval_sh_torch(sh, means - campos, sh_degree) + 0.5, min=0.0)
     opac = torch.sigmoid(opacities_raw)

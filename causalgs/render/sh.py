@@ -47,7 +47,7 @@ def sh_basis_torch(dirs: torch.Tensor, degree: int) -> torch.Tensor:
 
 def eval_sh_torch(sh: torch.Tensor, view: torch.Tensor, degree: int) -> torch.Tensor:
     """Colour [N, 3] = Σ_k basis_k(view/|view|) · sh[:, k] for the first (degree + 1)² coefficients of sh [N, S, 3]."""
-    dirs = view / view.norm(dim=-1, keepdim=True)
+    dirs = view / torch.sqrt((view * view).sum(dim=-1, keepdim=True) + 1e-20)  # finite at the camera centre
     basis = sh_basis_torch(dirs, degree)
     return (basis[..., None] * sh[:, : basis.shape[-1]]).sum(dim=1)
 
