@@ -277,7 +277,7 @@ def rasterize(
     if means.shape != (n, 3):
         raise CausalGSError(f"means has shape {list(means.shape)}, expected [N, 3]")
     n_sh = sh.shape[1] if sh.dim() == 3 else 0
-    deg = int(round(math.sqrt(n_sh))) - 1
+    deg = math.isqrt(n_sh) - 1
     if sh.shape != (n, n_sh, 3) or (deg + 1) ** 2 != n_sh or not 0 <= deg <= 3:
         raise CausalGSError(f"sh has shape {list(sh.shape)}, expected [N, (d+1)^2, 3] with d <= 3 and N = {n}")
     if opacities.shape != (n,):

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 import torch
 
@@ -51,7 +50,7 @@ def _reference(p, cam, covs=None, probe=None):
     return rasterize_reference(
         p["means"], p.get("quats"), p.get("scales"), p["opacities"], p["sh"], torch.tensor(cam.viewmat),
         torch.tensor(cam.K), cam.width, cam.height, torch.tensor(BG, dtype=torch.float64),
-        sh_degree=int(math.isqrt(n_sh)) - 1, covs=covs, means2d_probe=probe,
+        sh_degree=math.isqrt(n_sh) - 1, covs=covs, means2d_probe=probe,
     )  # fmt: skip
 
 
