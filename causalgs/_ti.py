@@ -100,7 +100,7 @@ def init(device: str = "cpu", precision: str = "float32", *, debug: bool = False
         offline_cache=True,
         offline_cache_file_path=str(folder),
         log_level=ti.WARN,
-        cpu_max_num_threads=os.cpu_count() or 1,
+        cpu_max_num_threads=int(os.environ.get("CAUSALGS_TI_THREADS", os.cpu_count() or 1)),
     )
     taken = ti.lang.impl.current_cfg().arch.name
     if device == "gpu" and taken not in ("cuda", "vulkan") and not quiet:

@@ -1,0 +1,144 @@
+"""Benchmarks: machine-readable speed figures (one JSON object per line), medians of repeated runs.
+
+Speed is measured here, never asserted in tests: these machines are shared and noisy, so figures that are compared
+(the Taichi rasterizer against the dense torch reference) are taken side by side in one process on the same inputs.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from collections.abc import Callable, Iterable
+
+import torch
+
+from causalgs.cameras import Camera, look_at
+
+
+def bench_scene(n: int, kind: str = "surface", seed: int = 0, dtype=torch.float32) -> dict[str, torch.Tensor]:
+    """``n`` Gaussians with degree-3 SH, in one of two layouts.
+
+    - ``surface``: like a trained object: splats on the unit sphere, flattened along the normal, mostly opaque
+      (opacity logits ~ N(2, 1)), sized so the splats cover the surface about four times over.
+    - ``volume``: a stress case: splats filling the cube [-1, 1]³ at opacity ~0.5, so that every ray crosses dozens
+      (~35 per pixel at 10k Gaussians, 256²) before its transmittance runs out.
+    """
+    g = torch.Generator().manual_seed(seed)
+    if kind == "surface":
+        normal = torch.randn(n, 3, generator=g, dtype=torch.float64)
+        normal /= normal.norm(dim=1, keepdim=True)
+        means = normal.to(dtype)
+        # Rotation taking z to the normal: the flat (z) axis of each splat lies along the sphere's normal.
+        z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(n, 3)
+        axis = torch.cross(z, normal, dim=1)
+        w = 1.0 + normal[:, 2:3]
+        quats = torch.cat([w, axis], dim=1)
+        quats[w[:, 0] < 1e-6] = torch.tensor([0.0, 1.0, 0.0, 0.0], dtype=torch.float64)
+        # Four-fold cover: n · π (2σ)² = 4 · 4π  =>  σ = sqrt(4 / n).
+        sigma = math.sqrt(4.0 / n)
+        scales = torch.log(torch.tensor([sigma, sigma, 0.1 * sigma])) + 0.2 * torch.randn(n, 3, generator=g)
+        opacities = 2.0 + torch.randn(n, generator=g)
+        return {
+            "means": means,
+            "quats": quats.to(dtype),
+            "scales": scales.to(dtype),
+            "opacities": opacities.to(dtype),
+            "sh": (torch.randn(n, 16, 3, generator=g) * 0.2).to(dtype),
+        }
+    if kind != "volume":
+        raise ValueError(f"unknown benchmark scene '{kind}' (surface or volume)")
+    base = math.log(0.03 * (1e4 / n) ** (1.0 / 3.0))
+    return {
+        "means": (torch.rand(n, 3, generator=g, dtype=dtype) - 0.5) * 2.0,
+        "quats": torch.randn(n, 4, generator=g, dtype=dtype),
+        "scales": base + 0.3 * torch.randn(n, 3, generator=g, dtype=dtype),
+        "opacities": torch.randn(n, generator=g, dtype=dtype),
+        "sh": torch.randn(n, 16, 3, generator=g, dtype=dtype) * 0.2,
+    }
+
+
+def bench_camera(size: int) -> Camera:
+    return Camera.from_blender(look_at([0.0, -3.5, 1.5], [0.0, 0.0, 0.0]), size, size, fov_x=0.8)
+
+
+def _median_ms(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
+    """(first call ms, median ms of the next ``repeats`` calls)."""
+    t = time.perf_counter()
+    fn()
+    first = (time.perf_counter() - t) * 1e3
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - t) * 1e3)
+    return first, statistics.median(times)
+
+
+def render_benchmark(
+    sizes: Iterable[int] = (128, 256, 512),
+    counts: Iterable[int] = (1_000, 10_000, 100_000),
+    repeats: int = 5,
+    reference: bool = True,
+    reference_limit: float = 4e9,
+) -> Iterable[dict]:
+    """Yield one record per (size, count): forward and forward+backward ms of the Taichi rasterizer, and of the dense
+    torch reference when its H·W·N working set stays under ``reference_limit`` bytes."""
+    from causalgs import _ti
+    from causalgs.render import rasterize
+    from causalgs.render.reference import rasterize_reference
+
+    dtype = _ti.torch_dtype()
+    for size in sizes:
+        cam = bench_camera(size)
+        vm, K = torch.tensor(cam.viewmat, dtype=dtype), torch.tensor(cam.K, dtype=dtype)
+        for n in counts:
+            p = bench_scene(n, dtype=dtype)
+            leaves = {k: t.clone().requires_grad_(True) for k, t in p.items()}
+            bg = torch.tensor([1.0, 1.0, 1.0], dtype=dtype)
+
+            def fwd(fn=rasterize, q=p):
+                with torch.no_grad():
+                    return fn(q["means"], q["quats"], q["scales"], q["opacities"], q["sh"], vm, K, size, size,
+                              background=bg)  # fmt: skip
+
+            def fwd_bwd(fn=rasterize, q=leaves):
+                for t in q.values():
+                    t.grad = None
+                out = fn(q["means"], q["quats"], q["scales"], q["opacities"], q["sh"], vm, K, size, size,
+                         background=bg)  # fmt: skip
+                (out[0].sum() + out[1].sum()).backward()
+
+            first_f, fwd_ms = _median_ms(fwd, repeats)
+            first_fb, fb_ms = _median_ms(fwd_bwd, repeats)
+            _, _, meta = fwd()
+            rec = {
+                "bench": "render",
+                "precision": _ti.runtime().precision,
+                "size": size,
+                "gaussians": n,
+                "tile_entries": meta["n_isect"],
+                "forward_ms": round(fwd_ms, 3),
+                "forward_backward_ms": round(fb_ms, 3),
+                "first_forward_ms": round(first_f, 1),
+                "first_forward_backward_ms": round(first_fb, 1),
+                "repeats": repeats,
+            }
+            # The reference holds ~20 [H·W, N] tensors alive for autograd.
+            if reference and size * size * n * 20 * torch.finfo(dtype).bits / 8 <= reference_limit:
+
+                def ref(q, grad):
+                    return rasterize_reference(q["means"], q["quats"], q["scales"], q["opacities"], q["sh"], vm, K,
+                                               size, size, bg)  # fmt: skip
+
+                _, ref_f = _median_ms(lambda: fwd(lambda *a, **k: ref(p, False)), max(1, repeats // 2))
+                _, ref_fb = _median_ms(lambda: fwd_bwd(lambda *a, **k: ref(leaves, True)), max(1, repeats // 2))
+                rec.update(
+                    reference_forward_ms=round(ref_f, 3),
+                    reference_forward_backward_ms=round(ref_fb, 3),
+                    speedup_forward=round(ref_f / fwd_ms, 1),
+                    speedup_forward_backward=round(ref_fb / fb_ms, 1),
+                )
+            else:
+                rec["reference"] = "skipped: does not fit in memory"
+            yield rec
