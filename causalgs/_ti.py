@@ -100,6 +100,7 @@ def init(device: str = "cpu", precision: str = "float32", *, debug: bool = False
         offline_cache=True,
         offline_cache_file_path=str(folder),
         log_level=ti.WARN,
+        unrolling_limit=64,  # the store copies unroll 16x3 SH matrices
         cpu_max_num_threads=int(os.environ.get("CAUSALGS_TI_THREADS", os.cpu_count() or 1)),
     )
     taken = ti.lang.impl.current_cfg().arch.name

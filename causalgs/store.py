@@ -96,7 +96,8 @@ def default_specs(sh_degree: int = 3) -> tuple[FieldSpec, ...]:
         FieldSpec("scale_raw", (3,), fill=math.log(0.01), doc="log of the Gaussian's axis scales"),
         FieldSpec("quat", (4,), fill=(1.0, 0.0, 0.0, 0.0), doc="rotation quaternion w x y z, unnormalised"),
         FieldSpec("opacity_raw", (), doc="logit of opacity"),
-        FieldSpec("sh", (3,), per_row=(n_sh,), doc="SH colour coefficients; sh[:, 0] is the DC term"),
+        # A (S, 3) matrix per row rather than S vec3 rows: copies and kernels then loop over particles only.
+        FieldSpec("sh", (n_sh, 3), doc="SH colour coefficients; sh[:, 0] is the DC term"),
         FieldSpec("v", (3,), doc="velocity"),
         FieldSpec("F", (3, 3), fill="identity", doc="deformation gradient"),
         FieldSpec("C", (3, 3), doc="APIC affine velocity matrix"),
@@ -148,6 +149,17 @@ def _array_to_rows(f: ti.template(), es: ti.template(), arr: ti.types.ndarray(),
                 f[J][a, b] = arr[I, a, b]
 
 
+@ti.kernel
+def _zero_rows(f: ti.template(), es: ti.template(), count: ti.i32):
+    for I in ti.grouped(ti.ndrange(count, *f.shape[1:])):
+        if ti.static(len(es) == 0):
+            f[I] = 0
+        elif ti.static(len(es) == 1):
+            f[I] = ti.Vector.zero(f.dtype, es[0])
+        else:
+            f[I] = ti.Matrix.zero(f.dtype, es[0], es[1])
+
+
 class ParticleStore:
     """Fixed-capacity Taichi fields for ``n`` particles, one row per particle, all rows aligned.
 
@@ -179,7 +191,11 @@ class ParticleStore:
                 raise CausalGSError(f"field '{s.name}': dtype '{s.dtype}' must be 'real' or 'i32'")
             if s.grad and s.dtype != "real":
                 raise CausalGSError(f"field '{s.name}': only real fields can have gradients")
-            if len(s.elem) > 2 or len(s.per_row) > 1:
+            if (
+                len(s.elem) > 2
+                or len(s.per_row) > 1
+                or (len(s.elem) == 2 and s.fill == "identity" and s.elem[0] != s.elem[1])
+            ):
                 raise CausalGSError(f"field '{s.name}': at most a matrix element and one per-row axis")
 
     # -- allocation ---------------------------------------------------------------------------------------------
@@ -412,11 +428,11 @@ class ParticleStore:
         self._write(name, fill.expand(stop - start, *fill.shape).contiguous(), start)
 
     def zero_grad(self, names: Iterable[str] | None = None) -> None:
-        """Clear the adjoint fields of ``names`` (default: every field that has one)."""
+        """Clear the adjoint fields of ``names`` (default: every field that has one) in rows [0, n)."""
         self._check_alive()
         for name in self.specs if names is None else names:
-            if self.specs[name].grad:
-                self.field(name).grad.fill(0)
+            if self.specs[name].grad and self._n:
+                _zero_rows(self.field(name).grad, self.specs[name].elem, self._n)
 
     # -- persistence --------------------------------------------------------------------------------------------
     def state_dict(self) -> dict[str, np.ndarray]:

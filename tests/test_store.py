@@ -155,7 +155,10 @@ def test_kernels_see_only_count_rows(store):
 
 
 def test_extra_fields_and_save_load(tmp_path, ti64):
-    extra = (FieldSpec("yield_stress", (), fill=1e4, doc="plastic yield stress"),)
+    extra = (
+        FieldSpec("yield_stress", (), fill=1e4, doc="plastic yield stress"),
+        FieldSpec("x_hist", (3,), per_row=(4,), doc="positions at 4 substeps (a per-row axis)"),
+    )
     s = ParticleStore(5, sh_degree=1, extra=extra)
     rows = _random_rows(s, 5, seed=4)
     s.append(**rows)
@@ -163,6 +166,7 @@ def test_extra_fields_and_save_load(tmp_path, ti64):
     assert not list(tmp_path.glob(".*tmp"))  # atomic write leaves no temporary behind
     t = ParticleStore.load(tmp_path / "p.npz")
     assert t.n == 5 and t.sh_degree == 1 and "yield_stress" in t.specs
+    assert t.to_torch("x_hist").shape == (5, 4, 3)
     for name, val in rows.items():
         np.testing.assert_array_equal(t.to_numpy(name), val, err_msg=name)
     t.resize(6)

@@ -1,9 +1,9 @@
 """Tile binning (torch) and front-to-back alpha compositing (Taichi), forward and hand-written backward.
 
 Design, for the CPU backend (no block shared memory, and Taichi's autodiff cannot handle the compositing loop):
-- Binning: every Gaussian's exact pixel box (project.bounds) is cut into 16×16 tiles; (tile, depth) ordering comes
-  from a depth argsort followed by a stable sort on the tile id (torch).
-- The projected data of every tile entry is packed contiguously in tile order, so the compositing loops stream it.
+- Binning: every Gaussian's exact pixel box (project.bounds) is cut into 16×16 tiles; tile counts and a prefix sum
+  give each tile's slots, and a serial pass over the depth-sorted Gaussians fills them, so every list is
+  depth-ordered. The projected data of every entry is packed into its slot, so the compositing loops stream it.
 - Compositing runs one tile per thread and is *entry-major*: for each Gaussian of the tile's list, only the pixels of
   its own box (clipped to the tile) are visited, instead of every pixel against every entry. Pixels that reach the
   transmittance floor are marked done (negative T); a tile stops when all its pixels are done.
@@ -16,40 +16,13 @@ Design, for the CPU backend (no block shared memory, and Taichi's autodiff canno
 # No `from __future__ import annotations`: Taichi 1.7 reads kernel annotations as live objects.
 import torch
 
+from causalgs import _ti
 from causalgs._ti import ti
 from causalgs.render.reference import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 TILE = 16
 PACK = 11  # mx, my, conic a, b, c, opacity, r, g, b, depth, σ bound ln(255·opacity)
 VPACK = 9  # gradients of mx, my, a, b, c, opacity, r, g, b
-
-
-def bin_gaussians(box: torch.Tensor, depth: torch.Tensor, width: int, height: int, tile: int = TILE):
-    """Tile lists. ``box`` [N, 4] int32 inclusive pixel boxes (x0, x1, y0, y1), ``depth`` [N].
-
-    Returns ``gids`` [M] int32 (Gaussian of every entry, by tile then depth) and ``ranges`` [T, 2] int32 (each
-    tile's [start, end) in ``gids``), with T = ceil(W / tile) · ceil(H / tile) tiles in row-major order.
-    """
-    tiles_x = (width + tile - 1) // tile
-    n_tiles = tiles_x * ((height + tile - 1) // tile)
-    box = box.long()
-    valid = (box[:, 0] <= box[:, 1]) & (box[:, 2] <= box[:, 3])
-    ids = torch.nonzero(valid).flatten()
-    ids = ids[torch.argsort(depth[ids], stable=True)]
-    b = box[ids]
-    tx0, ty0 = b[:, 0] // tile, b[:, 2] // tile
-    nx = b[:, 1] // tile - tx0 + 1
-    counts = nx * (b[:, 3] // tile - ty0 + 1)
-    total = int(counts.sum())
-    rep = torch.repeat_interleave(torch.arange(len(ids)), counts)
-    first = torch.cumsum(counts, 0) - counts
-    off = torch.arange(total) - first[rep]
-    tile_id = (ty0[rep] + off // nx[rep]) * tiles_x + tx0[rep] + off % nx[rep]
-    tile_sorted, perm = torch.sort(tile_id, stable=True)
-    gids = ids[rep[perm]].to(torch.int32)
-    ends = torch.cumsum(torch.bincount(tile_sorted, minlength=n_tiles), 0)
-    ranges = torch.stack([ends - torch.bincount(tile_sorted, minlength=n_tiles), ends], dim=1).to(torch.int32)
-    return gids.contiguous(), ranges.contiguous()
 
 
 @ti.func
@@ -87,30 +60,102 @@ def _row_exp(mx, a, b, c, dy, lo):
 
 
 @ti.kernel
-def pack(
-    gids: ti.types.ndarray(),
+def count_tiles(box: ti.types.ndarray(), counts: ti.types.ndarray(), n: ti.i32, tiles_x: ti.i32, tile: ti.template()):
+    """Number of Gaussians whose pixel box touches each tile (``counts`` [T] zeroed by the caller)."""
+    for i in range(n):
+        if box[i, 0] <= box[i, 1] and box[i, 2] <= box[i, 3]:
+            for ty in range(box[i, 2] // tile, box[i, 3] // tile + 1):
+                for tx in range(box[i, 0] // tile, box[i, 1] // tile + 1):
+                    ti.atomic_add(counts[ty * tiles_x + tx], 1)
+
+
+@ti.kernel
+def fill_tiles(
+    order: ti.types.ndarray(),
     box: ti.types.ndarray(),
+    cursor: ti.types.ndarray(),
     mean2d: ti.template(),
     conic: ti.template(),
     opac: ti.template(),
     color: ti.template(),
     depth: ti.template(),
+    gids: ti.types.ndarray(),
     packed: ti.types.ndarray(),
     pbox: ti.types.ndarray(),
+    n: ti.i32,
+    tiles_x: ti.i32,
+    tile: ti.template(),
+):
+    """Append every Gaussian, in depth ``order``, to the lists of the tiles it touches (``cursor`` [T] starts at each
+    tile's first slot), writing its packed data there. Serial, so that every tile list stays depth-sorted; it costs
+    a fraction of a millisecond at 10k Gaussians."""
+    ti.loop_config(serialize=True)
+    for j in range(n):
+        g = order[j]
+        if box[g, 0] <= box[g, 1] and box[g, 2] <= box[g, 3]:
+            m2, co, col = mean2d[g], conic[g], color[g]
+            o = opac[g]
+            smax = ti.log(255.0 * ti.max(o, ALPHA_MIN)) * (1.0 + 1e-4) + 1e-6
+            for ty in range(box[g, 2] // tile, box[g, 3] // tile + 1):
+                for tx in range(box[g, 0] // tile, box[g, 1] // tile + 1):
+                    t = ty * tiles_x + tx
+                    k = cursor[t]
+                    cursor[t] = k + 1
+                    gids[k] = g
+                    packed[k, 0], packed[k, 1] = m2[0], m2[1]
+                    packed[k, 2], packed[k, 3], packed[k, 4] = co[0], co[1], co[2]
+                    packed[k, 5] = o
+                    packed[k, 6], packed[k, 7], packed[k, 8] = col[0], col[1], col[2]
+                    packed[k, 9] = depth[g]
+                    packed[k, 10] = smax
+                    for c in ti.static(range(4)):
+                        pbox[k, c] = box[g, c]
+
+
+def bin_and_pack(store, box: torch.Tensor, width: int, height: int, tile: int = TILE):
+    """Tile lists of the projected Gaussians of ``store`` from their pixel boxes ``box`` [N, 4] int32.
+
+    Returns ``gids`` [M] int32 (the Gaussian of every entry, by tile then depth), ``ranges`` [T, 2] int32 (each
+    tile's [start, end) in the lists, row-major tiles), ``packed`` [M, PACK] and ``pbox`` [M, 4] (entry data).
+    """
+    n = store.n
+    tiles_x = (width + tile - 1) // tile
+    n_tiles = tiles_x * ((height + tile - 1) // tile)
+    counts = torch.zeros(n_tiles, dtype=torch.int32)
+    if n:
+        count_tiles(box, counts, n, tiles_x, tile)
+    ends = torch.cumsum(counts, 0, dtype=torch.int32)
+    starts = ends - counts
+    m = int(ends[-1]) if n_tiles else 0
+    dt = _ti.torch_dtype()
+    gids = torch.empty(m, dtype=torch.int32)
+    packed = torch.empty((m, PACK), dtype=dt)
+    pbox = torch.empty((m, 4), dtype=torch.int32)
+    if m:
+        order = torch.argsort(store.to_torch("depth"), stable=True).to(torch.int32)
+        s = store
+        fill_tiles(order, box, starts.clone(), s.mean2d, s.conic, s.opac, s.color, s.depth, gids, packed, pbox, n,
+                   tiles_x, tile)  # fmt: skip
+    return gids, torch.stack([starts, ends], dim=1).contiguous(), packed, pbox
+
+
+@ti.kernel
+def scatter_grads(
+    gids: ti.types.ndarray(),
+    v_packed: ti.types.ndarray(),
+    mean2d: ti.template(),
+    conic: ti.template(),
+    opac: ti.template(),
+    color: ti.template(),
     m: ti.i32,
 ):
+    """Sum the entries' gradients into the Gaussians' adjoint fields (cleared by the caller)."""
     for k in range(m):
         g = gids[k]
-        packed[k, 0] = mean2d[g][0]
-        packed[k, 1] = mean2d[g][1]
-        for j in ti.static(range(3)):
-            packed[k, 2 + j] = conic[g][j]
-            packed[k, 6 + j] = color[g][j]
-        packed[k, 5] = opac[g]
-        packed[k, 9] = depth[g]
-        packed[k, 10] = ti.log(255.0 * ti.max(opac[g], ALPHA_MIN)) * (1.0 + 1e-4) + 1e-6
-        for j in ti.static(range(4)):
-            pbox[k, j] = box[g, j]
+        mean2d.grad[g] += ti.Vector([v_packed[k, 0], v_packed[k, 1]])
+        conic.grad[g] += ti.Vector([v_packed[k, 2], v_packed[k, 3], v_packed[k, 4]])
+        opac.grad[g] += v_packed[k, 5]
+        color.grad[g] += ti.Vector([v_packed[k, 6], v_packed[k, 7], v_packed[k, 8]])
 
 
 @ti.kernel

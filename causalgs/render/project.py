@@ -88,7 +88,7 @@ def project(
         det = ti.max(a * c - b * b, 1e-12)  # >= EPS2D² for a PSD covariance; the max only guards rounding
         d = x[i] - campos
         # +1e-20 keeps the direction (and its gradient) finite for a Gaussian at the camera centre.
-        col = ti.max(eval_sh(sh, i, d / ti.sqrt(d.dot(d) + 1e-20), degree) + 0.5, 0.0)
+        col = ti.max(eval_sh(sh[i], d / ti.sqrt(d.dot(d) + 1e-20), degree) + 0.5, 0.0)
         zero2, zero3 = ti.Vector([0.0, 0.0]), ti.Vector([0.0, 0.0, 0.0])
         mean2d[i] = ti.select(valid, ti.Vector([fx * p.x / z + cx, fy * p.y / z + cy]), zero2)
         conic[i] = ti.select(valid, ti.Vector([c / det, -b / det, a / det]), zero3)

@@ -106,13 +106,7 @@ class Rasterizer:
         box = torch.empty((s.n, 4), dtype=torch.int32)
         radii = torch.empty((s.n, 2), dtype=dt)
         project.bounds(s.mean2d, s.conic, s.depth, s.opac, box, radii, W, H, s.n)
-        depth = s.to_torch("depth")
-        gids, ranges = composite.bin_gaussians(box, depth, W, H, self.tile)
-        m = len(gids)
-        packed = torch.empty((m, composite.PACK), dtype=dt)
-        pbox = torch.empty((m, 4), dtype=torch.int32)
-        if m:
-            composite.pack(gids, box, s.mean2d, s.conic, s.opac, s.color, s.depth, packed, pbox, m)
+        gids, ranges, packed, pbox = composite.bin_and_pack(s, box, W, H, self.tile)
         rgb = torch.empty((H, W, 3), dtype=dt)
         T_final = torch.empty((H, W), dtype=dt)
         last = torch.empty((H, W), dtype=torch.int32)
@@ -132,7 +126,7 @@ class Rasterizer:
 
     def backward(self, frame: Frame, v_rgb: torch.Tensor, v_alpha: torch.Tensor) -> torch.Tensor:
         """Back-propagate ∂L/∂rgb [H, W, 3] and ∂L/∂alpha [H, W] into the store's adjoint fields of the projection
-        inputs (cleared first). Returns the per-Gaussian gradients [N, 9] of (mean2d, conic, opacity, colour)."""
+        inputs (cleared first). Returns the screen-space gradients ∂L/∂mean2d [N, 2] (what densification uses)."""
         s = self.store
         if frame.upload != self.upload or frame.n != s.n:
             raise CausalGSError("the store changed between the forward and the backward pass of this render")
@@ -147,14 +141,12 @@ class Rasterizer:
                 torch.empty((H, W), dtype=dt), torch.empty((H, W, 3), dtype=dt), v_packed,
                 W, H, (W + self.tile - 1) // self.tile, len(frame.ranges), self.tile,
             )  # fmt: skip
-        v_g = torch.zeros((s.n, composite.VPACK), dtype=dt).index_add_(0, frame.gids.long(), v_packed)
-        s.zero_grad(INPUTS)
-        s.from_torch("mean2d", v_g[:, 0:2], grad=True)
-        s.from_torch("conic", v_g[:, 2:5], grad=True)
-        s.from_torch("opac", v_g[:, 5], grad=True)
-        s.from_torch("color", v_g[:, 6:9], grad=True)
+        s.zero_grad(INPUTS + ("mean2d", "conic", "opac", "color"))
+        if m:
+            composite.scatter_grads(frame.gids, v_packed, s.mean2d, s.conic, s.opac, s.color, m)
+        v_mean2d = s.to_torch("mean2d", grad=True)  # read before project.grad, which consumes it
         project.project.grad(*self._project_args(frame.view, frame.sh_degree, frame.use_cov))
-        return v_g
+        return v_mean2d
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -204,7 +196,7 @@ class _RasterizeFunction(torch.autograd.Function):
             v_alpha = torch.zeros(v_rgb.shape[:2], dtype=v_rgb.dtype)
         if v_rgb is None:
             v_rgb = torch.zeros((*v_alpha.shape, 3), dtype=v_alpha.dtype)
-        v_g = rast.backward(frame, v_rgb, v_alpha)
+        v_mean2d = rast.backward(frame, v_rgb, v_alpha)
         s = rast.store
 
         def grad(name, i, need, stop=None):
@@ -221,7 +213,7 @@ class _RasterizeFunction(torch.autograd.Function):
             grad("opacity_raw", 3, need[3]),
             grad("sh", 4, need[4], stop=ctx.n_sh),
             grad("cov3d", 5, need[5] and ctx.use_cov),
-            v_g[:, 0:2].to(ctx.dtypes[0]) if need[6] else None,
+            v_mean2d.to(ctx.dtypes[0]) if need[6] else None,
             None, None, None, None,
         )  # fmt: skip
 
@@ -233,7 +225,7 @@ def _upload(rast: Rasterizer, inputs: dict[str, torch.Tensor], sh: torch.Tensor)
         s.resize(n)
     for name, t in inputs.items():
         s.from_torch(name, t)
-    full = torch.zeros((n, s.specs["sh"].per_row[0], 3), dtype=sh.dtype)
+    full = torch.zeros((n, s.specs["sh"].elem[0], 3), dtype=sh.dtype)
     full[:, : sh.shape[1]] = sh.detach()
     s.from_torch("sh", full)
     rast.upload += 1

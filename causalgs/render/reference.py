@@ -115,3 +115,31 @@ def rasterize_reference(
     d_acc = w @ depth[idx]
     exp_depth = torch.where(acc > 0, d_acc / torch.clamp(acc, min=1e-12), torch.zeros_like(acc))
     return rgb.reshape(height, width, 3), acc.reshape(height, width), exp_depth.reshape(height, width)
+
+
+def bin_gaussians(box: torch.Tensor, depth: torch.Tensor, width: int, height: int, tile: int = 16):
+    """Tile lists. ``box`` [N, 4] int32 inclusive pixel boxes (x0, x1, y0, y1), ``depth`` [N].
+
+    Returns ``gids`` [M] int32 (Gaussian of every entry, by tile then depth) and ``ranges`` [T, 2] int32 (each
+    tile's [start, end) in ``gids``), with T = ceil(W / tile) · ceil(H / tile) tiles in row-major order.
+    """
+    tiles_x = (width + tile - 1) // tile
+    n_tiles = tiles_x * ((height + tile - 1) // tile)
+    box = box.long()
+    valid = (box[:, 0] <= box[:, 1]) & (box[:, 2] <= box[:, 3])
+    ids = torch.nonzero(valid).flatten()
+    ids = ids[torch.argsort(depth[ids], stable=True)]
+    b = box[ids]
+    tx0, ty0 = b[:, 0] // tile, b[:, 2] // tile
+    nx = b[:, 1] // tile - tx0 + 1
+    counts = nx * (b[:, 3] // tile - ty0 + 1)
+    total = int(counts.sum())
+    rep = torch.repeat_interleave(torch.arange(len(ids)), counts)
+    first = torch.cumsum(counts, 0) - counts
+    off = torch.arange(total) - first[rep]
+    tile_id = (ty0[rep] + off // nx[rep]) * tiles_x + tx0[rep] + off % nx[rep]
+    tile_sorted, perm = torch.sort(tile_id, stable=True)
+    gids = ids[rep[perm]].to(torch.int32)
+    ends = torch.cumsum(torch.bincount(tile_sorted, minlength=n_tiles), 0)
+    ranges = torch.stack([ends - torch.bincount(tile_sorted, minlength=n_tiles), ends], dim=1).to(torch.int32)
+    return gids.contiguous(), ranges.contiguous()

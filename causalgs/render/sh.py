@@ -53,29 +53,35 @@ def eval_sh_torch(sh: torch.Tensor, view: torch.Tensor, degree: int) -> torch.Te
 
 
 @ti.func
-def eval_sh(sh: ti.template(), i, d, degree: ti.template()):
-    """Σ_k basis_k(d) · sh[i, k] for unit direction ``d``; ``degree`` is static so unused terms are not compiled."""
-    c = C0 * sh[i, 0]
+def eval_sh(S, d, degree: ti.template()):
+    """Σ_k basis_k(d) · S[k, :] for a unit direction ``d`` and coefficients ``S`` ((degree+1)² × 3 or larger matrix);
+    ``degree`` is static so unused terms are not compiled."""
+    c = C0 * _row(S, 0)
     if ti.static(degree >= 1):
         x, y, z = d[0], d[1], d[2]
-        c += -C1 * y * sh[i, 1] + C1 * z * sh[i, 2] - C1 * x * sh[i, 3]
+        c += -C1 * y * _row(S, 1) + C1 * z * _row(S, 2) - C1 * x * _row(S, 3)
         if ti.static(degree >= 2):
             xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
             c += (
-                C2[0] * xy * sh[i, 4]
-                + C2[1] * yz * sh[i, 5]
-                + C2[2] * (2 * zz - xx - yy) * sh[i, 6]
-                + C2[3] * xz * sh[i, 7]
-                + C2[4] * (xx - yy) * sh[i, 8]
+                C2[0] * xy * _row(S, 4)
+                + C2[1] * yz * _row(S, 5)
+                + C2[2] * (2 * zz - xx - yy) * _row(S, 6)
+                + C2[3] * xz * _row(S, 7)
+                + C2[4] * (xx - yy) * _row(S, 8)
             )
             if ti.static(degree >= 3):
                 c += (
-                    C3[0] * y * (3 * xx - yy) * sh[i, 9]
-                    + C3[1] * xy * z * sh[i, 10]
-                    + C3[2] * y * (4 * zz - xx - yy) * sh[i, 11]
-                    + C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * sh[i, 12]
-                    + C3[4] * x * (4 * zz - xx - yy) * sh[i, 13]
-                    + C3[5] * z * (xx - yy) * sh[i, 14]
-                    + C3[6] * x * (xx - 3 * yy) * sh[i, 15]
+                    C3[0] * y * (3 * xx - yy) * _row(S, 9)
+                    + C3[1] * xy * z * _row(S, 10)
+                    + C3[2] * y * (4 * zz - xx - yy) * _row(S, 11)
+                    + C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * _row(S, 12)
+                    + C3[4] * x * (4 * zz - xx - yy) * _row(S, 13)
+                    + C3[5] * z * (xx - yy) * _row(S, 14)
+                    + C3[6] * x * (xx - 3 * yy) * _row(S, 15)
                 )
     return c
+
+
+@ti.func
+def _row(S, k: ti.template()):
+    return ti.Vector([S[k, 0], S[k, 1], S[k, 2]])
