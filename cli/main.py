@@ -15,6 +15,7 @@ import click
 from causalgs import __version__
 from causalgs.errors import CausalGSError
 from cli.options import out_option, seed_option
+from cli.render import render
 
 
 class _Group(click.Group):
@@ -98,6 +99,9 @@ def info(data, downscale):
     click.echo(ds.summary())
 
 
+cli.add_command(render)
+
+
 # ---------------------------------------------------------------------------------------------------------------------
 # Commands planned but not built yet: they say so and exit non-zero.
 # ---------------------------------------------------------------------------------------------------------------------
@@ -114,10 +118,8 @@ def _not_built(name: str, what: str, issue: int):
 _PLANNED = {
     "fit": ("learn a scene from multi-view video: canonical Gaussians, velocities, materials, MPM", 6),
     "predict": ("extrapolate future frames with the simulator (--frames 22)", 6),
-    "render": ("render a saved run or a 3DGS PLY from any camera at any time", 3),
     "cluster": ("segment the scene into objects by learned physics (K-means on material features)", 6),
     "discover": ("find and name a physical effect the model is missing, add it and show the error shrink", 7),
-    "bench": ("machine-readable benchmarks of the rasterizer and the simulator", 3),
 }
 
 for _name, (_what, _issue) in _PLANNED.items():
@@ -127,6 +129,11 @@ for _name, (_what, _issue) in _PLANNED.items():
         context_settings={"ignore_unknown_options": True, "allow_extra_args": True},
         add_help_option=True,
     )(click.argument("args", nargs=-1, type=click.UNPROCESSED)(_not_built(_name, _what, _issue)))
+
+
+from cli.bench import bench  # noqa: E402
+
+cli.add_command(bench)
 
 
 def _parse_rgb(text: str, what: str) -> tuple[float, float, float]:

@@ -141,7 +141,7 @@ class Rasterizer:
                 torch.empty((H, W), dtype=dt), torch.empty((H, W, 3), dtype=dt), v_packed,
                 W, H, (W + self.tile - 1) // self.tile, len(frame.ranges), self.tile,
             )  # fmt: skip
-        s.zero_grad(INPUTS + ("mean2d", "conic", "opac", "color"))
+        s.zero_grad((*INPUTS, "mean2d", "conic", "opac", "color"))
         if m:
             composite.scatter_grads(frame.gids, v_packed, s.mean2d, s.conic, s.opac, s.color, m)
         v_mean2d = s.to_torch("mean2d", grad=True)  # read before project.grad, which consumes it

@@ -61,6 +61,21 @@ def project(means, covs, viewmat, K, width: int, height: int):
     return mean2d, cov2d, z, valid & (det > 0)
 
 
+def _composite(pix, mean2d, conic, opac, colors, depth, background):
+    """Front-to-back compositing of depth-sorted splats at pixel centres ``pix`` [P, 2]: colour, alpha, Σ w·depth."""
+    dx = mean2d[:, 0][None, :] - pix[:, :1]  # [P, M]
+    dy = mean2d[:, 1][None, :] - pix[:, 1:]
+    sigma = 0.5 * (conic[:, 0] * dx * dx + conic[:, 2] * dy * dy) + conic[:, 1] * dx * dy
+    alpha = torch.clamp(opac * torch.exp(-sigma), max=ALPHA_MAX)
+    alpha = torch.where((alpha >= ALPHA_MIN) & (sigma >= 0), alpha, torch.zeros_like(alpha))
+    one_minus = 1.0 - alpha
+    T = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), one_minus[:, :-1]], dim=1), dim=1)
+    included = (T * one_minus > T_MIN).detach()  # non-increasing along depth: a prefix, as in the kernel's loop
+    w = alpha * T * included
+    T_final = 1.0 - w.sum(dim=1)
+    return w @ colors + T_final[:, None] * background[None, :], 1.0 - T_final, w @ depth
+
+
 def rasterize_reference(
     means: torch.Tensor,
     quats: torch.Tensor,
@@ -75,11 +90,13 @@ def rasterize_reference(
     sh_degree: int = 3,
     covs: torch.Tensor | None = None,
     means2d_probe: torch.Tensor | None = None,
+    chunk: int | None = None,
 ):
     """Render [H, W, 3] colour, [H, W] alpha and [H, W] expected depth by brute force (memory O(H·W·N)).
 
     Arguments have the shapes of :func:`causalgs.render.rasterize`; ``covs`` [N, 3, 3] replaces quats and scales.
     ``means2d_probe`` [N, 2] (zeros) is added to the projected means, so its gradient is ∂L/∂mean2d.
+    ``chunk``: pixels per chunk (checkpointed under autograd), to fit large images in memory.
     """
     if covs is None:
         covs = quat_scale_to_cov(quats, torch.exp(scales_raw))
@@ -99,20 +116,21 @@ def rasterize_reference(
     v, u = torch.meshgrid(
         torch.arange(height, dtype=means.dtype) + 0.5, torch.arange(width, dtype=means.dtype) + 0.5, indexing="ij"
     )
-    dx = mean2d[idx, 0][None, :] - u.reshape(-1, 1)  # [P, M]
-    dy = mean2d[idx, 1][None, :] - v.reshape(-1, 1)
-    sigma = 0.5 * (conic[:, 0] * dx * dx + conic[:, 2] * dy * dy) + conic[:, 1] * dx * dy
-    alpha = torch.clamp(opac[idx] * torch.exp(-sigma), max=ALPHA_MAX)
-    alpha = torch.where((alpha >= ALPHA_MIN) & (sigma >= 0), alpha, torch.zeros_like(alpha))
+    pix = torch.stack([u.reshape(-1), v.reshape(-1)], dim=1)
+    args = (mean2d[idx], conic, opac[idx], colors[idx], depth[idx], background)
+    if chunk is None or chunk >= len(pix):
+        rgb, acc, d_acc = _composite(pix, *args)
+    else:
+        # Pixel chunks bound the [P, M] working set; under autograd each chunk is recomputed in the backward.
+        from torch.utils.checkpoint import checkpoint
 
-    one_minus = 1.0 - alpha
-    T = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), one_minus[:, :-1]], dim=1), dim=1)
-    included = (T * one_minus > T_MIN).detach()  # non-increasing along depth: a prefix, as in the kernel's loop
-    w = alpha * T * included
-    T_final = 1.0 - w.sum(dim=1)
-    rgb = w @ colors[idx] + T_final[:, None] * background[None, :]
-    acc = 1.0 - T_final
-    d_acc = w @ depth[idx]
+        parts = [
+            checkpoint(_composite, pix[i : i + chunk], *args, use_reentrant=False)
+            if torch.is_grad_enabled()
+            else _composite(pix[i : i + chunk], *args)
+            for i in range(0, len(pix), chunk)
+        ]
+        rgb, acc, d_acc = (torch.cat(t) for t in zip(*parts, strict=True))
     exp_depth = torch.where(acc > 0, d_acc / torch.clamp(acc, min=1e-12), torch.zeros_like(acc))
     return rgb.reshape(height, width, 3), acc.reshape(height, width), exp_depth.reshape(height, width)
 

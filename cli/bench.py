@@ -1,0 +1,69 @@
+"""``causalgs bench``: machine-readable speed figures."""
+
+from __future__ import annotations
+
+import json
+
+import click
+
+from cli.options import device_option, precision_option
+
+
+def _ints(text: str, what: str) -> tuple[int, ...]:
+    try:
+        vals = tuple(int(float(s)) for s in text.split(","))
+    except ValueError:
+        raise click.BadParameter(f"'{text}' must be comma-separated integers", param_hint=what) from None
+    if not vals or min(vals) < 1:
+        raise click.BadParameter(f"'{text}' must be positive integers", param_hint=what)
+    return vals
+
+
+@click.group()
+def bench():
+    """Benchmarks printing one JSON object per measurement (medians of repeated runs).
+
+    Figures compared with each other (e.g. the rasterizer against the dense torch reference) are measured side by
+    side in one process on the same inputs; these machines are shared and noisy, so compare ratios, not absolutes
+    across runs.
+    """
+
+
+@bench.command()
+@click.option("--sizes", default="128,256,512", show_default=True, help="Image sides (px), comma-separated.")
+@click.option("--counts", default="1000,10000,100000", show_default=True, help="Gaussian counts, comma-separated.")
+@click.option("--repeats", type=click.IntRange(1, 1000), default=5, show_default=True, help="Timed runs per case.")
+@click.option(
+    "--scene",
+    type=click.Choice(["surface", "volume"]),
+    default="surface",
+    show_default=True,
+    help="surface: opaque splats on a sphere, like a trained object; volume: a cube of half-transparent splats.",
+)
+@click.option("--reference-limit", type=float, default=1e8, show_default=True,
+              help="Skip the dense torch reference above this many Gaussian-pixel pairs.")  # fmt: skip
+@click.option("--json", "as_json", is_flag=True, help="Print JSON lines only (default: JSON lines plus a table).")
+@device_option
+@precision_option
+def render(sizes, counts, repeats, scene, reference_limit, as_json, device, precision):
+    """Rasterizer forward and forward+backward milliseconds, first-call (compile or cache load) time, and the
+    dense torch reference on the same inputs where it is affordable."""
+    from causalgs import _ti
+    from causalgs.bench import render_benchmark
+
+    _ti.init(device, precision)
+    rows = []
+    for rec in render_benchmark(_ints(sizes, "--sizes"), _ints(counts, "--counts"), repeats, scene, reference_limit):
+        click.echo(json.dumps(rec))
+        rows.append(rec)
+    if not as_json:
+        from rich.console import Console
+        from rich.table import Table
+
+        table = Table(title=f"render ({scene}, {precision}, {rows[0]['arch'] if rows else device})")
+        for col in ("size", "gaussians", "forward_ms", "forward_backward_ms", "speedup_forward_backward"):
+            table.add_column(col, justify="right")
+        for r in rows:
+            table.add_row(*(str(r.get(c, "-")) for c in ("size", "gaussians", "forward_ms", "forward_backward_ms",
+                                                         "speedup_forward_backward")))  # fmt: skip
+        Console(stderr=True).print(table)
