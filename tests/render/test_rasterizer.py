@@ -236,3 +236,22 @@ def test_taichi_binning_matches_torch_binning(ti64):
     torch.testing.assert_close(frame.gids, gids)
     torch.testing.assert_close(frame.ranges, ranges)
     torch.testing.assert_close(frame.pbox, box[gids.long()])
+
+
+def test_chunked_reference_equals_dense_reference(ti64):
+    """The benchmark runs the reference in checkpointed pixel chunks; it must be the same function."""
+    p, cam = _scene(40, 19), _camera()
+    leaves = [{k: t.clone().requires_grad_(True) for k, t in p.items()} for _ in range(2)]
+    w_rgb, w_a = _loss_weights(14)
+    outs = []
+    for q, chunk in zip(leaves, (None, 97), strict=True):
+        img, alpha, depth = rasterize_reference(
+            q["means"], q["quats"], q["scales"], q["opacities"], q["sh"], torch.tensor(cam.viewmat),
+            torch.tensor(cam.K), W, H, torch.tensor(BG, dtype=torch.float64), chunk=chunk,
+        )  # fmt: skip
+        ((img * w_rgb).sum() + (alpha * w_a).sum()).backward()
+        outs.append((img.detach(), alpha.detach(), depth.detach()))
+    for a, b in zip(*outs, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
+    for k in p:
+        torch.testing.assert_close(leaves[0][k].grad, leaves[1][k].grad, atol=1e-12, rtol=1e-10)
