@@ -11,12 +11,14 @@ version-check network call before Taichi is loaded. Nothing initialises Taichi a
 - The offline kernel cache is on. Its folder is ``$CAUSALGS_TI_CACHE`` or ``~/.cache/causalgs/taichi``: a gradient
   kernel of the simulator takes minutes to compile cold and seconds from the cache.
 - torch runs with ``$CAUSALGS_TORCH_THREADS`` threads (default 1): beside Taichi's own thread pool, one torch
-  thread measured ~20× faster than the default for the small ops of this project on 2 cores.
+  thread measured ~20× faster than the default for the small ops of this project on 2 cores. Taichi's CPU pool has
+  ``$CAUSALGS_TI_THREADS`` threads (default: all cores).
 """
 
 from __future__ import annotations
 
 import atexit
+import contextlib
 import os
 import sys
 from dataclasses import dataclass
@@ -33,6 +35,7 @@ DEVICES = ("cpu", "gpu")
 PRECISIONS = ("float32", "float64")
 CACHE_ENV = "CAUSALGS_TI_CACHE"
 THREADS_ENV = "CAUSALGS_TORCH_THREADS"
+TI_THREADS_ENV = "CAUSALGS_TI_THREADS"
 
 
 @dataclass(frozen=True)
@@ -92,17 +95,19 @@ def init(device: str = "cpu", precision: str = "float32", *, debug: bool = False
     fp = ti.f64 if precision == "float64" else ti.f32
     # ti.gpu would segfault without a GPU; a list of archs makes Taichi fall back to the CPU cleanly.
     arch = [ti.cuda, ti.vulkan] if device == "gpu" else ti.cpu
-    ti.init(
-        arch=arch,
-        default_fp=fp,
-        default_ip=ti.i32,
-        debug=debug,
-        offline_cache=True,
-        offline_cache_file_path=str(folder),
-        log_level=ti.WARN,
-        unrolling_limit=64,  # the store copies unroll 16x3 SH matrices
-        cpu_max_num_threads=int(os.environ.get("CAUSALGS_TI_THREADS", os.cpu_count() or 1)),
-    )
+    # Taichi prints its start line to stdout; keep stdout for results (JSON lines of `causalgs bench`).
+    with contextlib.redirect_stdout(sys.stderr):
+        ti.init(
+            arch=arch,
+            default_fp=fp,
+            default_ip=ti.i32,
+            debug=debug,
+            offline_cache=True,
+            offline_cache_file_path=str(folder),
+            log_level=ti.WARN,
+            unrolling_limit=64,  # the store copies unroll 16x3 SH matrices
+            cpu_max_num_threads=_env_threads(TI_THREADS_ENV, os.cpu_count() or 1),
+        )
     taken = ti.lang.impl.current_cfg().arch.name
     if device == "gpu" and taken not in ("cuda", "vulkan") and not quiet:
         print("causalgs: no CUDA or Vulkan device found; running on the CPU.", file=sys.stderr)
@@ -122,17 +127,23 @@ def _shutdown() -> None:
         ti.reset()
 
 
-def _set_torch_threads() -> None:
-    import torch
-
-    raw = os.environ.get(THREADS_ENV, "1")
+def _env_threads(name: str, default: int) -> int:
+    raw = os.environ.get(name)
+    if raw is None:
+        return default
     try:
         n = int(raw)
     except ValueError:
-        raise RuntimeConfigError(f"{THREADS_ENV}={raw!r} must be a positive integer") from None
+        n = 0
     if n < 1:
-        raise RuntimeConfigError(f"{THREADS_ENV}={raw!r} must be a positive integer")
-    torch.set_num_threads(n)
+        raise RuntimeConfigError(f"{name}={raw!r} must be a positive integer")
+    return n
+
+
+def _set_torch_threads() -> None:
+    import torch
+
+    torch.set_num_threads(_env_threads(THREADS_ENV, 1))
 
 
 def runtime() -> Runtime:
