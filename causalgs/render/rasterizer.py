@@ -57,7 +57,7 @@ class View:
 
 
 @dataclass
-class Frame:
+class RenderPass:
     """What a forward pass keeps for its backward: the tile lists, packed entries and per-pixel state."""
 
     view: View
@@ -82,7 +82,7 @@ class Rasterizer:
         self.store = store
         self.tile = tile
         self.upload = 0  # incremented by whoever rewrites the store's Gaussian parameters
-        self.last_frame: Frame | None = None
+        self.last_pass: RenderPass | None = None
 
     def _fields(self, names):
         return [self.store.field(nm) for nm in names]
@@ -118,13 +118,13 @@ class Rasterizer:
         )
         alpha = 1.0 - T_final
         depth_img = torch.where(alpha > 0, dacc / alpha.clamp(min=1e-12), torch.zeros_like(dacc))
-        frame = Frame(
+        frame = RenderPass(
             view, tuple(background), deg, use_cov, s.n, gids, ranges, packed, pbox, T_final, last, self.upload
         )
-        self.last_frame = frame
+        self.last_pass = frame
         return rgb, alpha, depth_img, radii, frame
 
-    def backward(self, frame: Frame, v_rgb: torch.Tensor, v_alpha: torch.Tensor) -> torch.Tensor:
+    def backward(self, frame: RenderPass, v_rgb: torch.Tensor, v_alpha: torch.Tensor) -> torch.Tensor:
         """Back-propagate ∂L/∂rgb [H, W, 3] and ∂L/∂alpha [H, W] into the store's adjoint fields of the projection
         inputs (cleared first). Returns the screen-space gradients ∂L/∂mean2d [N, 2] (what densification uses)."""
         s = self.store
@@ -295,5 +295,5 @@ def rasterize(
     rgb, alpha, depth, radii = _RasterizeFunction.apply(
         means, quats, scales, opacities, sh, covs, means2d, rast, view, bg, sh_degree
     )
-    meta = {"depth": depth, "radii": radii, "means2d": means2d, "n_isect": len(rast.last_frame.gids)}
+    meta = {"depth": depth, "radii": radii, "means2d": means2d, "n_isect": len(rast.last_pass.gids)}
     return rgb, alpha, meta

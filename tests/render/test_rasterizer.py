@@ -226,7 +226,7 @@ def test_taichi_binning_matches_torch_binning(ti64):
     _upload(rast, {"x": p["means"], "opacity_raw": p["opacities"], "quat": p["quats"], "scale_raw": p["scales"]},
             p["sh"])  # fmt: skip
     rast.forward(View.of(cam.viewmat, cam.K, W, H))
-    frame = rast.last_frame
+    frame = rast.last_pass
     box = torch.empty((300, 4), dtype=torch.int32)
     radii = torch.empty((300, 2), dtype=torch.float64)
     s = rast.store
