@@ -1,0 +1,240 @@
+"""MLS-MPM kernels (Hu et al. 2018, "A moving least squares material point method"), one phase per kernel.
+
+Layout follows taichi's mpm88 and difftaichi's diffmpm: quadratic B-spline weights, the 3×3×3 stencil unrolled with
+``ti.static``, separate input/output grids, and particle state indexed by substep within a checkpoint segment:
+``x[p, s]``, ``v[p, s]``, ``C[p, s]``, ``F[p, s]`` (the store's per-row axis). A substep reads slot ``s`` and writes
+slot ``s + 1``, so no kernel reads a field and then overwrites it (Taichi's global data access rule for autodiff):
+
+    clear_grid → p2g(s) → grid_update → g2p(s)
+
+Kernels loop over ``range(n)`` with the count a runtime argument, so they compile once per store capacity. Stencil
+base indices are clamped into the grid: a particle that leaves it (or turns NaN) cannot write out of bounds; the
+frame check in :mod:`causalgs.sim.mpm` reports it instead.
+"""
+
+# No `from __future__ import annotations`: Taichi 1.7 reads kernel annotations as live objects.
+from causalgs._ti import ti
+from causalgs.sim.materials import kirchhoff, lame_ti
+
+
+@ti.kernel
+def clear_grid(grid_v_in: ti.template(), grid_m: ti.template(), grid_v_out: ti.template()):
+    for I in ti.grouped(grid_m):
+        grid_v_in[I] = ti.Vector.zero(float, 3)
+        grid_m[I] = 0.0
+        grid_v_out[I] = ti.Vector.zero(float, 3)
+
+
+@ti.func
+def _base(Xp, shape: ti.template()):
+    """Lower stencil corner of a particle at grid coordinates ``Xp``, clamped so the stencil stays in the grid."""
+    b = ti.cast(ti.floor(Xp - 0.5), ti.i32)
+    return ti.max(ti.min(b, ti.Vector(shape) - 3), 0)
+
+
+@ti.kernel
+def p2g(
+    x: ti.template(),
+    v: ti.template(),
+    C: ti.template(),
+    F: ti.template(),
+    mass: ti.template(),
+    vol: ti.template(),
+    E: ti.template(),
+    nu: ti.template(),
+    grid_v_in: ti.template(),
+    grid_m: ti.template(),
+    s: ti.i32,
+    n: ti.i32,
+    dt: float,
+    lo: ti.math.vec3,
+    inv_dx: float,
+    model: ti.template(),
+):
+    """Scatter momentum and mass; F[p, s+1] = (I + dt C[p, s]) F[p, s] and its stress enter the affine momentum."""
+    for p in range(n):
+        Xp = (x[p, s] - lo) * inv_dx
+        base = _base(Xp, grid_m.shape)
+        fx = Xp - ti.cast(base, float)
+        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+        F_new = (ti.Matrix.identity(float, 3) + dt * C[p, s]) @ F[p, s]
+        F[p, s + 1] = F_new
+        mu, lam = lame_ti(E[p], nu[p])
+        tau = kirchhoff(F_new, mu, lam, model)
+        # MLS-MPM eq. 29: the stress force folds into the APIC affine term with ∇w ≈ 4/dx² w (x_i − x_p).
+        affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + mass[p] * C[p, s]
+        mv = mass[p] * v[p, s]
+        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            offset = ti.Vector([i, j, k])
+            dpos = (ti.cast(offset, float) - fx) / inv_dx
+            weight = w[i][0] * w[j][1] * w[k][2]
+            grid_v_in[base + offset] += weight * (mv + affine @ dpos)
+            grid_m[base + offset] += weight * mass[p]
+
+
+@ti.kernel
+def grid_update(
+    grid_v_in: ti.template(),
+    grid_m: ti.template(),
+    grid_v_out: ti.template(),
+    dt: float,
+    lo: ti.math.vec3,
+    dx: float,
+    effects: ti.template(),
+):
+    """Momentum → velocity, then every external effect in order. Empty nodes keep zero velocity (branch-free: the
+    division uses a safe mass so its adjoint stays finite)."""
+    for I in ti.grouped(grid_m):
+        m = grid_m[I]
+        has = m > 0
+        v = grid_v_in[I] / ti.select(has, m, 1.0)
+        xi = lo + ti.cast(I, float) * dx
+        v = effects.apply(v, xi, I, dt, ti.static(grid_m.shape))
+        grid_v_out[I] = ti.select(has, v, ti.Vector.zero(float, 3))
+
+
+@ti.kernel
+def g2p(
+    x: ti.template(),
+    v: ti.template(),
+    C: ti.template(),
+    grid_v_out: ti.template(),
+    s: ti.i32,
+    n: ti.i32,
+    dt: float,
+    lo: ti.math.vec3,
+    inv_dx: float,
+):
+    """Gather v and the APIC matrix C = 4/dx² Σ w v_i (x_i − x_p)ᵀ into slot s+1; advect x with the new v."""
+    for p in range(n):
+        Xp = (x[p, s] - lo) * inv_dx
+        base = _base(Xp, grid_v_out.shape)
+        fx = Xp - ti.cast(base, float)
+        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+        new_v = ti.Vector.zero(float, 3)
+        new_C = ti.Matrix.zero(float, 3, 3)
+        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            offset = ti.Vector([i, j, k])
+            dpos = ti.cast(offset, float) - fx
+            g_v = grid_v_out[base + offset]
+            weight = w[i][0] * w[j][1] * w[k][2]
+            new_v += weight * g_v
+            new_C += (4.0 * inv_dx * weight) * g_v.outer_product(dpos)
+        v[p, s + 1] = new_v
+        C[p, s + 1] = new_C
+        x[p, s + 1] = x[p, s] + dt * new_v
+
+
+@ti.kernel
+def copy_slot(
+    x: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), src: ti.i32, dst: ti.i32, n: ti.i32
+):
+    """Carry the end state of a segment into slot 0 of the next (the checkpoint boundary)."""
+    for p in range(n):
+        x[p, dst] = x[p, src]
+        v[p, dst] = v[p, src]
+        C[p, dst] = C[p, src]
+        F[p, dst] = F[p, src]
+
+
+@ti.kernel
+def rows_to_slot(
+    x0: ti.template(),
+    v0: ti.template(),
+    C0: ti.template(),
+    F0: ti.template(),
+    x: ti.template(),
+    v: ti.template(),
+    C: ti.template(),
+    F: ti.template(),
+    s: ti.i32,
+    n: ti.i32,
+):
+    """Copy the store's plain state fields (x, v, C, F) into slot ``s`` of the substep-indexed ones."""
+    for p in range(n):
+        x[p, s] = x0[p]
+        v[p, s] = v0[p]
+        C[p, s] = C0[p]
+        F[p, s] = F0[p]
+
+
+@ti.kernel
+def slot_to_rows(
+    x: ti.template(),
+    v: ti.template(),
+    C: ti.template(),
+    F: ti.template(),
+    x0: ti.template(),
+    v0: ti.template(),
+    C0: ti.template(),
+    F0: ti.template(),
+    s: ti.i32,
+    n: ti.i32,
+):
+    for p in range(n):
+        x0[p] = x[p, s]
+        v0[p] = v[p, s]
+        C0[p] = C[p, s]
+        F0[p] = F[p, s]
+
+
+@ti.kernel
+def frame_stats(x: ti.template(), v: ti.template(), F: ti.template(), s: ti.i32, n: ti.i32, lo: ti.math.vec3,
+                inv_dx: float, shape: ti.template(), stats: ti.template()):  # fmt: skip
+    """stats = [Σ |x|+|v|+|F| (non-finite if any entry is), max |v|, particles outside the grid, 0]."""
+    for i in range(stats.shape[0]):
+        stats[i] = 0.0
+    for p in range(n):
+        Xp = (x[p, s] - lo) * inv_dx
+        stats[0] += x[p, s].norm() + v[p, s].norm() + F[p, s].norm()
+        ti.atomic_max(stats[1], v[p, s].norm())
+        out = 0
+        for d in ti.static(range(3)):
+            out += ti.select((Xp[d] < 0.5) | (Xp[d] >= shape[d] - 1.5), 1, 0)
+        stats[2] += ti.select(out > 0, 1.0, 0.0)
+
+
+@ti.kernel
+def arrays_to_slot(
+    x: ti.template(),
+    v: ti.template(),
+    C: ti.template(),
+    F: ti.template(),
+    xa: ti.types.ndarray(),
+    va: ti.types.ndarray(),
+    Ca: ti.types.ndarray(),
+    Fa: ti.types.ndarray(),
+    s: ti.i32,
+    n: ti.i32,
+):
+    """Write tensors x, v [n, 3] and C, F [n, 3, 3] into slot ``s`` (the other slots are left alone)."""
+    for p in range(n):
+        for a in ti.static(range(3)):
+            x[p, s][a] = xa[p, a]
+            v[p, s][a] = va[p, a]
+            for b in ti.static(range(3)):
+                C[p, s][a, b] = Ca[p, a, b]
+                F[p, s][a, b] = Fa[p, a, b]
+
+
+@ti.kernel
+def slot_to_arrays(
+    x: ti.template(),
+    v: ti.template(),
+    C: ti.template(),
+    F: ti.template(),
+    xa: ti.types.ndarray(),
+    va: ti.types.ndarray(),
+    Ca: ti.types.ndarray(),
+    Fa: ti.types.ndarray(),
+    s: ti.i32,
+    n: ti.i32,
+):
+    """Read slot ``s`` into tensors x, v [n, 3] and C, F [n, 3, 3]."""
+    for p in range(n):
+        for a in ti.static(range(3)):
+            xa[p, a] = x[p, s][a]
+            va[p, a] = v[p, s][a]
+            for b in ti.static(range(3)):
+                Ca[p, a, b] = C[p, s][a, b]
+                Fa[p, a, b] = F[p, s][a, b]
