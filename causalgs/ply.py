@@ -72,15 +72,10 @@ def write_points_ply(path: str | os.PathLike, xyz, rgb=None) -> None:
         ply.write(str(tmp))
 
 
-def read_points_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
-    """Read a point cloud: ``xyz`` float32 [N, 3] and ``rgb`` float32 [N, 3] in [0, 1], or ``None`` without colours.
-
-    Colours are taken from ``red/green/blue`` when all three exist: 8-bit values are divided by 255, 16-bit ones by
-    65535, floats are used as they are (clipped to [0, 1]).
-    """
-    path = Path(path)
+def _read_vertices(path: Path, what: str):
+    """The vertex records of a PLY file and their property names; one-line DataErrors for unreadable files."""
     if not path.is_file():
-        raise DataError(f"point cloud not found: {path}")
+        raise DataError(f"{what} not found: {path}")
     try:
         # mmap=False: read everything now, so a truncated file fails here and the file is not kept open.
         ply = PlyData.read(str(path), mmap=False)
@@ -90,7 +85,17 @@ def read_points_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | N
     if "vertex" not in names:
         raise DataError(f"{path}: no 'vertex' element (found: {', '.join(names) or 'none'})")
     vertex = ply["vertex"].data
-    props = vertex.dtype.names or ()
+    return vertex, vertex.dtype.names or ()
+
+
+def read_points_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read a point cloud: ``xyz`` float32 [N, 3] and ``rgb`` float32 [N, 3] in [0, 1], or ``None`` without colours.
+
+    Colours are taken from ``red/green/blue`` when all three exist: 8-bit values are divided by 255, 16-bit ones by
+    65535, floats are used as they are (clipped to [0, 1]).
+    """
+    path = Path(path)
+    vertex, props = _read_vertices(path, "point cloud")
     missing = [k for k in _XYZ if k not in props]
     if missing:
         raise DataError(f"{path}: vertex element has no '{missing[0]}' property (found: {', '.join(props) or 'none'})")
@@ -195,17 +200,7 @@ def read_gaussians_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
     property, a wrong number of ``f_rest`` or non-finite values are a one-line :class:`DataError` naming the file.
     """
     path = Path(path)
-    if not path.is_file():
-        raise DataError(f"Gaussian PLY not found: {path}")
-    try:
-        ply = PlyData.read(str(path), mmap=False)
-    except Exception as e:  # plyfile raises many kinds for bad input
-        raise DataError(f"{path}: not a readable PLY file ({_one_line(e)})") from None
-    names = [el.name for el in ply.elements]
-    if "vertex" not in names:
-        raise DataError(f"{path}: no 'vertex' element (found: {', '.join(names) or 'none'})")
-    vertex = ply["vertex"].data
-    props = vertex.dtype.names or ()
+    vertex, props = _read_vertices(path, "Gaussian PLY")
     missing = [k for k in _GS_REQUIRED if k not in props]
     if missing:
         raise DataError(

@@ -26,6 +26,14 @@ VPACK = 9  # gradients of mx, my, a, b, c, opacity, r, g, b
 
 
 @ti.func
+def _tile_rect(t, tiles_x, tile: ti.template(), width, height):
+    """Inclusive pixel bounds (x0, y0, x1, y1) of tile ``t`` (row-major tiles), clipped to the image."""
+    tx0 = (t % tiles_x) * tile
+    ty0 = (t // tiles_x) * tile
+    return tx0, ty0, ti.min(tx0 + tile, width) - 1, ti.min(ty0 + tile, height) - 1
+
+
+@ti.func
 def _row_span(mx, a, b, c, smax, dy, x0, x1):
     """Pixels [lo, hi] of row offset ``dy`` where σ = ½(a dx² + 2b dx dy + c dy²) ≤ ``smax``, within [x0, x1].
 
@@ -178,10 +186,7 @@ def composite_forward(
     pixel used) and weighted depth sum ``dacc`` [H, W]."""
     ti.loop_config(block_dim=4)  # tiles differ widely in cost: hand them out one at a time
     for t in range(n_tiles):
-        tx0 = (t % tiles_x) * tile
-        ty0 = (t // tiles_x) * tile
-        tx1 = ti.min(tx0 + tile, width) - 1
-        ty1 = ti.min(ty0 + tile, height) - 1
+        tx0, ty0, tx1, ty1 = _tile_rect(t, tiles_x, tile, width, height)
         start, end = ranges[t, 0], ranges[t, 1]
         for py in range(ty0, ty1 + 1):
             for px in range(tx0, tx1 + 1):
@@ -259,10 +264,7 @@ def composite_backward(
     """
     ti.loop_config(block_dim=4)
     for t in range(n_tiles):
-        tx0 = (t % tiles_x) * tile
-        ty0 = (t // tiles_x) * tile
-        tx1 = ti.min(tx0 + tile, width) - 1
-        ty1 = ti.min(ty0 + tile, height) - 1
+        tx0, ty0, tx1, ty1 = _tile_rect(t, tiles_x, tile, width, height)
         start, end = ranges[t, 0], ranges[t, 1]
         for py in range(ty0, ty1 + 1):
             for px in range(tx0, tx1 + 1):

@@ -27,6 +27,7 @@ from causalgs import _ti
 from causalgs.cameras import Camera, look_at, opengl_to_opencv
 from causalgs.errors import CausalGSError, DataError
 from causalgs.io import read_json
+from causalgs.progress import progress_bar
 
 __all__ = [
     "ORBIT_CENTERS",
@@ -220,18 +221,7 @@ def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: floa
 
 
 def _progress(enabled: bool):
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    return Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=Console(stderr=True),
-        disable=not enabled,
-        transient=False,
-    )
+    return progress_bar(enabled)
 
 
 def render_turntable(

@@ -23,13 +23,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from causalgs.cameras import Camera
 from causalgs.errors import CausalGSError
 from causalgs.io import write_image, write_json, write_npz
 from causalgs.ply import write_points_ply
+from causalgs.progress import progress_bar
 
 __all__ = ["Protocol", "SynthScene", "protocol", "write_dataset"]
 
@@ -134,16 +133,8 @@ def encode_rgba(rgb: np.ndarray, alpha: np.ndarray, background) -> np.ndarray:
     return np.concatenate([c, a[..., None]], axis=-1)
 
 
-def _progress(enabled: bool) -> Progress:
-    return Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=Console(stderr=True),
-        disable=not enabled,
-        transient=False,
-    )
+def _progress(enabled: bool):
+    return progress_bar(enabled)
 
 
 def write_dataset(
