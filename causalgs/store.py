@@ -150,6 +150,34 @@ def _array_to_rows(f: ti.template(), es: ti.template(), arr: ti.types.ndarray(),
 
 
 @ti.kernel
+def _slot_to_array(f: ti.template(), es: ti.template(), arr: ti.types.ndarray(), slot: ti.i32, start: ti.i32,
+                   count: ti.i32):  # fmt: skip
+    for p in range(count):
+        if ti.static(len(es) == 0):
+            arr[p] = f[p + start, slot]
+        elif ti.static(len(es) == 1):
+            for a in ti.static(range(es[0])):
+                arr[p, a] = f[p + start, slot][a]
+        else:
+            for a, b in ti.static(ti.ndrange(es[0], es[1])):
+                arr[p, a, b] = f[p + start, slot][a, b]
+
+
+@ti.kernel
+def _array_to_slot(f: ti.template(), es: ti.template(), arr: ti.types.ndarray(), slot: ti.i32, start: ti.i32,
+                   count: ti.i32):  # fmt: skip
+    for p in range(count):
+        if ti.static(len(es) == 0):
+            f[p + start, slot] = arr[p]
+        elif ti.static(len(es) == 1):
+            for a in ti.static(range(es[0])):
+                f[p + start, slot][a] = arr[p, a]
+        else:
+            for a, b in ti.static(ti.ndrange(es[0], es[1])):
+                f[p + start, slot][a, b] = arr[p, a, b]
+
+
+@ti.kernel
 def _zero_rows(f: ti.template(), es: ti.template(), count: ti.i32):
     for I in ti.grouped(ti.ndrange(count, *f.shape[1:])):
         if ti.static(len(es) == 0):
@@ -369,8 +397,14 @@ class ParticleStore:
     def _torch_dtype(self, name: str):
         return torch.int32 if self.specs[name].dtype == "i32" else _ti.torch_dtype()
 
-    def to_torch(self, name: str, *, grad: bool = False, start: int = 0, stop: int | None = None) -> torch.Tensor:
-        """A copy of rows [start, stop) (default: all ``n``) of field ``name`` (or its adjoint) as a CPU tensor."""
+    def to_torch(
+        self, name: str, *, grad: bool = False, start: int = 0, stop: int | None = None, slot: int | None = None
+    ) -> torch.Tensor:
+        """A copy of rows [start, stop) (default: all ``n``) of field ``name`` (or its adjoint) as a CPU tensor.
+
+        ``slot`` picks one index of the field's per-row axis (e.g. one substep of the simulator's state): the result
+        is then [rows, *elem] instead of [rows, *per_row, *elem].
+        """
         f = self.field(name)
         if grad:
             if not self.specs[name].grad:
@@ -380,27 +414,40 @@ class ParticleStore:
         if not 0 <= start <= stop <= self._n:
             raise CausalGSError(f"rows [{start}, {stop}) are outside [0, {self._n})")
         spec = self.specs[name]
-        out = torch.empty((stop - start, *spec.row_shape()), dtype=self._torch_dtype(name))
+        self._check_slot(name, slot)
+        shape = spec.row_shape() if slot is None else tuple(spec.elem)
+        out = torch.empty((stop - start, *shape), dtype=self._torch_dtype(name))
         if stop > start:
-            _rows_to_array(f, spec.elem, out, start, stop - start)
+            if slot is None:
+                _rows_to_array(f, spec.elem, out, start, stop - start)
+            else:
+                _slot_to_array(f, spec.elem, out, slot, start, stop - start)
         return out
+
+    def _check_slot(self, name: str, slot: int | None) -> None:
+        if slot is None:
+            return
+        per_row = self.specs[name].per_row
+        if len(per_row) != 1 or not 0 <= slot < per_row[0]:
+            raise CausalGSError(f"field '{name}' has no slot {slot} (per-row axis {list(per_row)})")
 
     def to_numpy(self, name: str, *, grad: bool = False) -> np.ndarray:
         return self.to_torch(name, grad=grad).numpy()
 
-    def from_torch(self, name: str, values, *, start: int = 0, grad: bool = False) -> None:
-        """Write ``values`` [m, *row_shape] (torch or numpy) into rows [start, start + m) of ``name``.
+    def from_torch(self, name: str, values, *, start: int = 0, grad: bool = False, slot: int | None = None) -> None:
+        """Write ``values`` [m, *row_shape] (torch or numpy) into rows [start, start + m) of ``name``; with
+        ``slot``, values [m, *elem] go into that index of the per-row axis and the other indices are left alone.
 
         Raises a one-line error for a wrong shape, rows past ``n`` or non-finite values.
         """
         spec = self.specs.get(name)
         if spec is None:
             raise CausalGSError(f"no particle field '{name}' (fields: {', '.join(self.specs)})")
+        self._check_slot(name, slot)
+        expect = spec.row_shape() if slot is None else tuple(spec.elem)
         t = torch.as_tensor(values)
-        if t.dim() >= 1 and t.shape[1:] != spec.row_shape():
-            raise CausalGSError(
-                f"field '{name}': got rows of shape {list(t.shape[1:])}, expected {list(spec.row_shape())}"
-            )
+        if t.dim() >= 1 and t.shape[1:] != expect:
+            raise CausalGSError(f"field '{name}': got rows of shape {list(t.shape[1:])}, expected {list(expect)}")
         if t.dim() == 0:
             raise CausalGSError(f"field '{name}': expected an array of rows, got a scalar")
         if start < 0 or start + len(t) > self._n:
@@ -410,15 +457,17 @@ class ParticleStore:
             raise CausalGSError(f"field '{name}': non-finite value in row {start + bad}")
         if grad and not spec.grad:
             raise CausalGSError(f"field '{name}' has no gradient")
-        self._write(name, t, start, grad=grad)
+        self._write(name, t, start, grad=grad, slot=slot)
 
-    def _write(self, name: str, t: torch.Tensor, start: int, grad: bool = False) -> None:
+    def _write(self, name: str, t: torch.Tensor, start: int, grad: bool = False, slot: int | None = None) -> None:
         spec = self.specs[name]
         f = self.field(name)
         f = f.grad if grad else f
         t = t.detach().to(device="cpu", dtype=self._torch_dtype(name)).contiguous()
-        if len(t):
+        if len(t) and slot is None:
             _array_to_rows(f, spec.elem, t, start, len(t))
+        elif len(t):
+            _array_to_slot(f, spec.elem, t, slot, start, len(t))
 
     def _fill_rows(self, name: str, start: int, stop: int) -> None:
         if stop <= start:

@@ -14,7 +14,7 @@ import click
 
 from causalgs import __version__
 from causalgs.errors import CausalGSError
-from cli.options import out_option, seed_option
+from cli.options import out_option, parse_rgb, seed_option
 from cli.render import render
 
 
@@ -77,7 +77,7 @@ def synth(name, out, views, frames, resolution, background, seed, force):
     """
     from causalgs.synth import generate
 
-    bg = _parse_rgb(background, "--background")
+    bg = parse_rgb(background, "--background")
     summary = generate(
         name, out, views=views, frames=frames, resolution=resolution, background=bg, seed=seed, overwrite=force
     )
@@ -134,16 +134,6 @@ for _name, (_what, _issue) in _PLANNED.items():
 from cli.bench import bench  # noqa: E402
 
 cli.add_command(bench)
-
-
-def _parse_rgb(text: str, what: str) -> tuple[float, float, float]:
-    try:
-        vals = tuple(float(s) for s in text.split(","))
-    except ValueError:
-        raise CausalGSError(f"{what} '{text}' must be three numbers 'r,g,b' in [0, 1]") from None
-    if len(vals) != 3 or not all(0.0 <= v <= 1.0 for v in vals):
-        raise CausalGSError(f"{what} '{text}' must be three numbers 'r,g,b' in [0, 1]")
-    return vals
 
 
 def main():

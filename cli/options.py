@@ -6,6 +6,8 @@ from pathlib import Path
 
 import click
 
+from causalgs.errors import CausalGSError
+
 device_option = click.option(
     "--device",
     type=click.Choice(["cpu", "gpu"]),
@@ -35,3 +37,14 @@ def out_option(required: bool = True, help: str = "Output folder (created if mis
         required=required,
         help=help,
     )
+
+
+def parse_rgb(text: str, what: str) -> tuple[float, float, float]:
+    """An 'r,g,b' option value in [0, 1], or a one-line error naming the option."""
+    try:
+        vals = tuple(float(s) for s in text.split(","))
+    except ValueError:
+        raise CausalGSError(f"{what} '{text}' must be three numbers 'r,g,b' in [0, 1]") from None
+    if len(vals) != 3 or not all(0.0 <= v <= 1.0 for v in vals):
+        raise CausalGSError(f"{what} '{text}' must be three numbers 'r,g,b' in [0, 1]")
+    return vals

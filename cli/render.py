@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from causalgs.errors import CausalGSError
-from cli.options import device_option, precision_option
+from cli.options import device_option, parse_rgb, precision_option
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 VIDEO_SUFFIXES = (".mp4",)
@@ -89,7 +89,7 @@ def render(
     else:
         raise CausalGSError("no camera: give --camera CAM.json or --data DIR --view N")
     if background is not None:
-        bg = _parse_rgb(background, "--background")
+        bg = parse_rgb(background, "--background")
     bg = WHITE if bg is None else bg
 
     gaussians = read_gaussians_ply(ply_path)
@@ -152,9 +152,3 @@ def _dataset_camera(root: Path, split: str, index: int):
         )
     bg = ds.background
     return frames[index].camera, (float(bg[0]), float(bg[1]), float(bg[2]))
-
-
-def _parse_rgb(text: str, what: str) -> tuple[float, float, float]:
-    from cli.main import _parse_rgb
-
-    return _parse_rgb(text, what)

@@ -169,6 +169,14 @@ def test_extra_fields_and_save_load(tmp_path, ti64):
     assert t.to_torch("x_hist").shape == (5, 4, 3)
     for name, val in rows.items():
         np.testing.assert_array_equal(t.to_numpy(name), val, err_msg=name)
+    # One index of the per-row axis in and out, the other indices untouched.
+    t.from_torch("x_hist", np.full((5, 3), 7.0), slot=2)
+    np.testing.assert_array_equal(t.to_torch("x_hist", slot=2).numpy(), 7.0)
+    np.testing.assert_array_equal(t.to_numpy("x_hist")[:, [0, 1, 3]], rows["x_hist"][:, [0, 1, 3]])
+    with pytest.raises(CausalGSError, match="has no slot 4"):
+        t.to_torch("x_hist", slot=4)
+    with pytest.raises(CausalGSError, match=r"expected \[3\]"):
+        t.from_torch("x_hist", np.zeros((5, 4, 3)), slot=0)
     t.resize(6)
     assert t.to_numpy("yield_stress")[5] == 1e4
 

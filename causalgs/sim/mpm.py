@@ -131,17 +131,13 @@ class Simulator:
             if not bool(torch.isfinite(t).all()):
                 raise CausalGSError(f"simulator state '{name}' has non-finite values")
             vals[name] = t.detach().to(device="cpu", dtype=dt).contiguous()
-        if n:
-            kernels.arrays_to_slot(*self._seg(), *(vals[k] for k in STATE), 0, n)
+        for k in STATE:
+            self.store.from_torch(f"{k}_seg", vals[k], slot=0)
         self.frame, self.time, self.schedule = 0, 0.0, []
 
     def state(self) -> dict[str, torch.Tensor]:
         """The current x, v, C, F (CPU tensors, copies)."""
-        n, dt = self.store.n, _ti.torch_dtype()
-        out = {k: torch.empty((n, 3) if k in ("x", "v") else (n, 3, 3), dtype=dt) for k in STATE}
-        if n:
-            kernels.slot_to_arrays(*self._seg(), *(out[k] for k in STATE), 0, n)
-        return out
+        return {k: self.store.to_torch(f"{k}_seg", slot=0) for k in STATE}
 
     def write_to_store(self) -> None:
         """Copy the current state into the store's x, v, C, F rows (e.g. to render the simulated particles)."""

@@ -20,25 +20,14 @@ W, H = 32, 24
 BG = (0.1, 0.2, 0.3)
 
 
-def _gaussians(n: int = 50, seed: int = 0) -> dict[str, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    return {
-        "means": rng.uniform(-1.0, 1.0, (n, 3)).astype(np.float32),
-        "quats": rng.normal(size=(n, 4)).astype(np.float32),
-        "scales": np.log(rng.uniform(0.05, 0.3, (n, 3))).astype(np.float32),
-        "opacities": (rng.normal(size=n) + 1.0).astype(np.float32),
-        "sh": (rng.normal(size=(n, 16, 3)) * 0.5).astype(np.float32),
-    }
-
-
 def _camera() -> Camera:
     return Camera.from_blender(look_at([0.0, -4.0, 1.5], [0.0, 0.0, 0.0]), W, H, fov_x=0.9)
 
 
 @pytest.fixture
-def scene(tmp_path):
+def scene(tmp_path, make_gaussians):
     """A 50-Gaussian PLY and a 32x24 camera file with a background."""
-    g = _gaussians()
+    g = make_gaussians()
     write_gaussians_ply(tmp_path / "scene.ply", **g)
     (tmp_path / "cam.json").write_text(json.dumps({**_camera().to_json(), "background": list(BG)}))
     return g, tmp_path

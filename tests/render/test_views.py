@@ -30,17 +30,6 @@ def _camera(eye=(0.0, -4.0, 1.5), target=(0.0, 0.0, 0.0)) -> Camera:
     return Camera.from_blender(look_at(eye, target), W, H, fov_x=0.9)
 
 
-def _gaussians(n: int = 50, seed: int = 0) -> dict[str, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    return {
-        "means": rng.uniform(-1.0, 1.0, (n, 3)).astype(np.float32),
-        "quats": rng.normal(size=(n, 4)).astype(np.float32),
-        "scales": np.log(rng.uniform(0.05, 0.3, (n, 3))).astype(np.float32),
-        "opacities": (rng.normal(size=n) + 1.0).astype(np.float32),
-        "sh": (rng.normal(size=(n, 16, 3)) * 0.5).astype(np.float32),
-    }
-
-
 def test_orbit_keeps_distance_elevation_and_intrinsics():
     cam, center = _camera(), np.array([0.1, 0.2, -0.1])
     cams = orbit_cameras(cam, center, 4)
@@ -95,8 +84,8 @@ def test_orbit_refuses_degenerate_cameras():
         orbit_cameras(cam, [0.0, 0.0, 0.0], 0)
 
 
-def test_render_camera_is_rasterize_in_uint8(ti32):
-    g, cam, bg = _gaussians(), _camera(), (0.1, 0.2, 0.3)
+def test_render_camera_is_rasterize_in_uint8(ti32, make_gaussians):
+    g, cam, bg = make_gaussians(), _camera(), (0.1, 0.2, 0.3)
     img = render_camera(g, cam, bg)
     assert img.dtype == np.uint8 and img.shape == (H, W, 3)
     assert img.std() > 5, "the Gaussians should show"
@@ -111,8 +100,8 @@ def test_render_camera_is_rasterize_in_uint8(ti32):
     np.testing.assert_array_equal(img2, img)
 
 
-def test_render_camera_needs_every_parameter(ti32):
-    g = _gaussians(5)
+def test_render_camera_needs_every_parameter(ti32, make_gaussians):
+    g = make_gaussians(5)
     del g["sh"]
     with pytest.raises(CausalGSError, match="missing sh"):
         render_camera(g, _camera())
@@ -134,8 +123,8 @@ def _read_video(path) -> list[np.ndarray]:
     return frames
 
 
-def test_turntable_writes_an_mp4(ti32, tmp_path):
-    g, cam = _gaussians(), _camera()
+def test_turntable_writes_an_mp4(ti32, tmp_path, make_gaussians):
+    g, cam = make_gaussians(), _camera()
     seen = []
     out = tmp_path / "videos" / "orbit.mp4"
     cams = render_turntable(g, cam, 3, out, fps=10, progress=lambda i, n: seen.append((i, n)))
