@@ -36,3 +36,23 @@ def _random_gaussians(n: int = 50, seed: int = 0) -> dict[str, np.ndarray]:
 @pytest.fixture
 def make_gaussians():
     return _random_gaussians
+
+
+@pytest.fixture
+def read_video():
+    """Decode every frame of a video file (BGR uint8) with OpenCV."""
+
+    def read(path) -> list[np.ndarray]:
+        import cv2
+
+        cap = cv2.VideoCapture(str(path))
+        frames = []
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            frames.append(frame)
+        cap.release()
+        return frames
+
+    return read

@@ -104,19 +104,12 @@ def test_camera_from_a_dataset(ti32, scene, tmp_path):
     _one_line_error(bad, "--view 99")
 
 
-def test_turntable_writes_a_readable_mp4(ti32, scene):
+def test_turntable_writes_a_readable_mp4(ti32, scene, read_video):
     _, d = scene
     out = d / "orbit.mp4"
     result = _invoke("--ply", d / "scene.ply", "--camera", d / "cam.json", "--turntable", 3, "--out", out, "--fps", 12)
     assert result.exit_code == 0, result.output
-    cap = cv2.VideoCapture(str(out))
-    frames = []
-    while True:
-        ok, frame = cap.read()
-        if not ok:
-            break
-        frames.append(frame)
-    cap.release()
+    frames = read_video(out)
     assert len(frames) == 3 and frames[0].shape == (H, W, 3)
     assert frames[0].std() > 5
     assert sorted(p.name for p in d.iterdir()) == ["cam.json", "orbit.mp4", "scene.ply"]

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import math
 
-import cv2
 import numpy as np
 import pytest
 import torch
@@ -111,25 +110,13 @@ def test_to_uint8_rounds_and_clips():
     np.testing.assert_array_equal(to_uint8(np.array([-1.0, 0.0, 0.5, 1.0, 2.0, np.nan])), [0, 0, 128, 255, 255, 0])
 
 
-def _read_video(path) -> list[np.ndarray]:
-    cap = cv2.VideoCapture(str(path))
-    frames = []
-    while True:
-        ok, frame = cap.read()
-        if not ok:
-            break
-        frames.append(frame)
-    cap.release()
-    return frames
-
-
-def test_turntable_writes_an_mp4(ti32, tmp_path, make_gaussians):
+def test_turntable_writes_an_mp4(ti32, tmp_path, make_gaussians, read_video):
     g, cam = make_gaussians(), _camera()
     seen = []
     out = tmp_path / "videos" / "orbit.mp4"
     cams = render_turntable(g, cam, 3, out, fps=10, progress=lambda i, n: seen.append((i, n)))
     assert seen == [(1, 3), (2, 3), (3, 3)]
-    frames = _read_video(out)
+    frames = read_video(out)
     assert len(frames) == 3 and frames[0].shape == (H, W, 3)
     assert [p.name for p in out.parent.iterdir()] == ["orbit.mp4"]  # no temporary file left
     # the first frame looks like the camera's own image (lossy codec: compare loosely)
@@ -137,10 +124,10 @@ def test_turntable_writes_an_mp4(ti32, tmp_path, make_gaussians):
     assert np.abs(frames[0][..., ::-1].astype(float) - first).mean() < 12
 
 
-def test_write_video_pads_odd_sizes_and_cleans_up_on_error(tmp_path):
+def test_write_video_pads_odd_sizes_and_cleans_up_on_error(tmp_path, read_video):
     frames = [np.full((7, 9, 3), 40 * i, np.uint8) for i in range(2)]
     assert write_video(tmp_path / "odd.mp4", frames, fps=5) == 2
-    read = _read_video(tmp_path / "odd.mp4")
+    read = read_video(tmp_path / "odd.mp4")
     assert len(read) == 2 and read[0].shape == (8, 10, 3)
     with pytest.raises(CausalGSError, match="first was"):
         write_video(tmp_path / "bad.mp4", [frames[0], np.zeros((8, 9, 3), np.uint8)])
