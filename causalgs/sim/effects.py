@@ -1,18 +1,26 @@
-"""External effects: a registry of named, parameterised terms of the MPM grid update.
+"""External effects: a registry of named, parameterised terms of the MPM step.
 
-Each effect is a ``ti.func`` ``f(v, x, I, dt, p, res) -> v`` applied to the velocity ``v`` of grid node ``I`` (integer
-index) at world position ``x`` after the momentum division, with ``p`` the effect's parameter field and ``res`` the
-static grid shape. An :class:`Effects` object holds the chosen terms; the grid-update kernel receives it as a static
-argument and applies every term in a ``ti.static`` loop (no if-chain over effect names).
+An effect is a ``ti.func`` registered under a name with its parameters and a *stage* that says where it acts:
+
+- ``FORCE`` and ``BOUNDARY`` terms change the grid velocity after the momentum division (gravity, a force field,
+  drag; ground planes, domain walls), forces first;
+- ``PLASTIC`` terms return-map the trial deformation gradient (plasticity);
+- ``STRESS`` terms add to the material's Kirchhoff stress (material damping).
+
+An :class:`Effects` object holds the chosen terms; the kernels receive it as a static argument and apply the terms of
+each stage in a ``ti.static`` loop (no if-chain over effect names). A new effect is one decorated function.
 
 Parameters live in one small Taichi field per term (``needs_grad=True``: the checkpointed backward accumulates their
-gradients), addressed by name: ``effects.get("gravity", "g")``, ``effects.set("gravity", g=(0, 0, -9.8))``.
+gradients), addressed by name: ``effects.get("gravity", "g")``, ``effects.set("gravity", g=(0, 0, -9.8))``, or as
+one vector (:meth:`Effects.flat`, :meth:`Effects.param_names`). Every term is written so its parameters have
+gradients: contact uses a one-cell ramp rather than a hard in/out test, norms are smoothed at zero.
 
-Spec strings name the terms: ``"gravity:g=0,0,-9.8;walls;linear_drag:c=0.5"``; a parameter left out takes its
-default. Forces are applied first, boundary conditions (``walls``) last, whatever the order in the spec.
+Spec strings name the terms: ``"gravity:g=0,0,-9.8;ground:mu=0.4;linear_drag:c=0.5"``; a parameter left out takes
+its default; the order in the spec does not matter.
 """
 
 # No `from __future__ import annotations`: Taichi 1.7 reads kernel annotations as live objects.
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,12 +28,21 @@ import numpy as np
 from causalgs import _ti
 from causalgs._ti import ti
 from causalgs.errors import CausalGSError
+from causalgs.sim.materials import polar_rotation
 
 # Grid nodes this close to the domain boundary are wall nodes (mpm88 uses 3: the quadratic stencil reaches two nodes
 # past a particle's cell, so a particle is stopped before its stencil leaves the grid).
 WALL_BAND = 3
 
-FORCE, BOUNDARY = 0, 1  # application order
+# Where a term acts, which is also its application order within the grid update (forces, then boundary conditions).
+#   FORCE, BOUNDARY: f(v, x, I, dt, dx, p, res) -> v         grid velocity after the momentum division
+#   PLASTIC:         f(F, mu, lam, p) -> F                     return mapping of the trial deformation gradient
+#   STRESS:          f(F, C, mu, lam, p) -> tau                Kirchhoff stress added to the material's
+FORCE, BOUNDARY, PLASTIC, STRESS = 0, 1, 2, 3
+GRID_STAGES = (FORCE, BOUNDARY)
+
+# |v| is taken as sqrt(v·v + EPS²), so norms of zero vectors have a finite (zero) derivative.
+EPS = 1e-12
 
 
 @dataclass(frozen=True)
@@ -34,17 +51,21 @@ class Param:
     size: int
     default: tuple[float, ...]
     doc: str = ""
+    lower: float | None = None  # inclusive bound on every entry, checked when set
 
 
 @dataclass(frozen=True)
 class EffectDef:
-    """A registered effect: its grid-update ``func``, its parameters (packed in this order) and when it applies."""
+    """A registered effect: its ``func``, its parameters (packed in this order), its stage and its law in words.
+
+    ``dt_limit(values, dx, rho_min)``, when given, is the largest stable substep the term allows (s)."""
 
     name: str
     func: object
     params: tuple[Param, ...]
     order: int
     doc: str
+    dt_limit: object = None
 
     @property
     def size(self) -> int:
@@ -70,41 +91,166 @@ class EffectDef:
 REGISTRY: dict[str, EffectDef] = {}
 
 
-def register(name: str, params: tuple[Param, ...] = (), order: int = FORCE, doc: str = ""):
-    """Decorator: register a ``ti.func`` ``f(v, x, I, dt, p, res) -> v`` as the effect ``name``."""
+def register(name: str, params: tuple[Param, ...] = (), order: int = FORCE, doc: str = "", dt_limit=None):
+    """Decorator: register a ``ti.func`` of the stage ``order`` (see the signatures above) as the effect ``name``."""
 
     def wrap(func):
         if name in REGISTRY:
             raise CausalGSError(f"effect '{name}' is registered twice")
-        REGISTRY[name] = EffectDef(name, func, tuple(params), order, doc)
+        REGISTRY[name] = EffectDef(name, func, tuple(params), order, doc, dt_limit)
         return func
 
     return wrap
 
 
+@ti.func
+def _vec(p: ti.template(), o: ti.template()):
+    return ti.Vector([p[o], p[o + 1], p[o + 2]])
+
+
+@ti.func
+def _norm(v):
+    return ti.sqrt(v.dot(v) + EPS * EPS)
+
+
+# -- forces ------------------------------------------------------------------------------------------------------
+
+
 @register("gravity", (Param("g", 3, (0.0, 0.0, -9.8), "acceleration (m/s²)"),), doc="uniform acceleration: v += dt g")
 @ti.func
-def gravity(v, x, I, dt, p: ti.template(), res: ti.template()):
-    return v + dt * ti.Vector([p[0], p[1], p[2]])
+def gravity(v, x, I, dt, dx, p: ti.template(), res: ti.template()):
+    return v + dt * _vec(p, 0)
+
+
+@register(
+    "force",
+    (Param("b", 3, (0.0, 0.0, 0.0), "acceleration (m/s²)"),),
+    doc="uniform external force field per unit mass (e.g. wind): v += dt b",
+)
+@ti.func
+def force(v, x, I, dt, dx, p: ti.template(), res: ti.template()):
+    return v + dt * _vec(p, 0)
 
 
 @register(
     "linear_drag",
-    (Param("c", 1, (0.0,), "drag rate (1/s)"),),
+    (Param("c", 1, (0.0,), "drag rate (1/s)", lower=0.0),),
     doc="a = -c v, integrated exactly over a substep: v *= exp(-c dt) (stable for any c dt)",
 )
 @ti.func
-def linear_drag(v, x, I, dt, p: ti.template(), res: ti.template()):
+def linear_drag(v, x, I, dt, dx, p: ti.template(), res: ti.template()):
     return v * ti.exp(-p[0] * dt)
+
+
+@register(
+    "quadratic_drag",
+    (Param("k", 1, (0.0,), "drag coefficient (1/m)", lower=0.0),),
+    doc="a = -k |v| v, integrated exactly along v over a substep: v /= 1 + k |v| dt (stable for any k dt)",
+)
+@ti.func
+def quadratic_drag(v, x, I, dt, dx, p: ti.template(), res: ti.template()):
+    return v / (1.0 + p[0] * dt * _norm(v))
+
+
+# -- boundary conditions -----------------------------------------------------------------------------------------
+
+
+@ti.func
+def _contact(x, p: ti.template(), dx):
+    """Unit normal of the plane n·x = d and the contact weight of a node at x: 1 at and below d − dx/2, 0 from
+    d + dx/2 up, linear in between (a one-cell ramp, so the plane's offset and normal have gradients)."""
+    n = _vec(p, 0)
+    n = n / _norm(n)
+    phi = n.dot(x) - p[3]
+    return n, ti.min(ti.max(0.5 - phi / dx, 0.0), 1.0)
+
+
+def _plane_params(mu: bool) -> tuple[Param, ...]:
+    out = (
+        Param("n", 3, (0.0, 0.0, 1.0), "plane normal, pointing out of the ground (normalised when used)"),
+        Param("d", 1, (0.0,), "plane offset: the ground is n·x <= d (m)"),
+    )
+    return out + ((Param("mu", 1, (0.5,), "Coulomb friction coefficient", lower=0.0),) if mu else ())
+
+
+@register(
+    "ground",
+    _plane_params(mu=True),
+    order=BOUNDARY,
+    doc="ground plane n·x = d with Coulomb friction: a node moving into it loses its normal velocity and mu times "
+    "that much tangential speed (Stomakhin et al. 2013); mu = 0 is a slip boundary",
+)
+@ti.func
+def ground(v, x, I, dt, dx, p: ti.template(), res: ti.template()):
+    n, w = _contact(x, p, dx)
+    vn = v.dot(n)
+    vt = v - vn * n
+    scale = ti.max(0.0, 1.0 + p[4] * vn / _norm(vt))
+    vc = ti.select(vn < 0.0, vt * scale, v)
+    return v + w * (vc - v)
+
+
+@register(
+    "ground_sticky",
+    _plane_params(mu=False),
+    order=BOUNDARY,
+    doc="sticky ground plane n·x = d: nodes in contact stop (v = 0)",
+)
+@ti.func
+def ground_sticky(v, x, I, dt, dx, p: ti.template(), res: ti.template()):
+    _, w = _contact(x, p, dx)
+    return (1.0 - w) * v
 
 
 @register("walls", order=BOUNDARY, doc="domain boundary: zero the velocity component into the wall in the wall band")
 @ti.func
-def walls(v, x, I, dt, p: ti.template(), res: ti.template()):
+def walls(v, x, I, dt, dx, p: ti.template(), res: ti.template()):
     # Element-wise masks, no branches and no writes to vector elements: both make Taichi's autodiff load locals
     # before they are stored (compile warnings in grid_update.grad).
     into = ((I < WALL_BAND) & (v < 0.0)) | ((I >= ti.Vector(res) - WALL_BAND) & (v > 0.0))
     return ti.select(into, ti.Vector.zero(float, 3), v)
+
+
+# -- material terms ----------------------------------------------------------------------------------------------
+
+
+@register(
+    "plasticity",
+    (Param("yield_stress", 1, (1.0e3,), "von Mises yield stress (Pa)", lower=0.0),),
+    order=PLASTIC,
+    doc="von Mises plasticity: with F = R S (polar), the deviatoric stretch S − tr(S)/3 I is scaled back so the "
+    "equivalent stress sqrt(3/2)·2mu·|dev S| stays at or below the yield stress; the rest is permanent deformation",
+)
+@ti.func
+def plasticity(F, mu, lam, p: ti.template()):
+    R = polar_rotation(F)
+    S = R.transpose() @ F
+    S = 0.5 * (S + S.transpose())
+    I = ti.Matrix.identity(float, 3)
+    m = S.trace() / 3.0
+    D = S - m * I
+    q = ti.sqrt(1.5) * 2.0 * mu * ti.sqrt((D * D).sum() + EPS * EPS)
+    scale = ti.min(1.0, p[0] / q)
+    return R @ (m * I + scale * D)
+
+
+def _viscous_dt(values: dict, dx: float, rho_min: float) -> float:
+    eta = float(values["eta"][0])
+    # Explicit viscosity is a diffusion of momentum with diffusivity eta/rho: dt <= dx² rho / (6 eta) in 3D.
+    return math.inf if eta <= 0 else dx * dx * rho_min / (6.0 * eta)
+
+
+@register(
+    "damping",
+    (Param("eta", 1, (0.0,), "viscosity (Pa·s)", lower=0.0),),
+    order=STRESS,
+    doc="material damping (Kelvin–Voigt viscosity): Cauchy stress 2·eta·sym(∇v) added to the elastic stress; it "
+    "damps internal motion (wobble) and leaves rigid motion alone",
+    dt_limit=_viscous_dt,
+)
+@ti.func
+def damping(F, C, mu, lam, p: ti.template()):
+    return (p[0] * F.determinant()) * (C + C.transpose())
 
 
 class Term:
@@ -126,10 +272,15 @@ class Term:
 
 @ti.data_oriented
 class Effects:
-    """The effects applied in the grid update, in application order (forces, then boundary conditions)."""
+    """The chosen terms, sorted by stage. The kernels call :meth:`apply` (grid update), :meth:`project` (after the
+    deformation-gradient update) and :meth:`stress` (added to the material's stress); each is a ``ti.static`` loop
+    over the terms of its stage, so a set of effects compiles into straight-line code."""
 
     def __init__(self, terms: list[Term]):
         self.terms = sorted(terms, key=lambda t: t.definition.order)
+        self.grid_terms = [t for t in self.terms if t.definition.order in GRID_STAGES]
+        self.plastic_terms = [t for t in self.terms if t.definition.order == PLASTIC]
+        self.stress_terms = [t for t in self.terms if t.definition.order == STRESS]
 
     @classmethod
     def from_spec(cls, spec: str) -> "Effects":
@@ -137,10 +288,24 @@ class Effects:
         return cls([Term(REGISTRY[name], values) for name, values in parse_spec(spec)])
 
     @ti.func
-    def apply(self, v, x, I, dt, res: ti.template()):
+    def apply(self, v, x, I, dt, dx, res: ti.template()):
         out = v
-        for t in ti.static(self.terms):
-            out = t.definition.func(out, x, I, dt, t.p, res)
+        for t in ti.static(self.grid_terms):
+            out = t.definition.func(out, x, I, dt, dx, t.p, res)
+        return out
+
+    @ti.func
+    def project(self, F, mu, lam):
+        out = F
+        for t in ti.static(self.plastic_terms):
+            out = t.definition.func(out, mu, lam, t.p)
+        return out
+
+    @ti.func
+    def stress(self, F, C, mu, lam):
+        out = ti.Matrix.zero(float, 3, 3)
+        for t in ti.static(self.stress_terms):
+            out += t.definition.func(F, C, mu, lam, t.p)
         return out
 
     def names(self) -> list[str]:
@@ -158,6 +323,9 @@ class Effects:
         off = t.definition.offset(param)
         return t.p.to_numpy()[off : off + t.definition.param(param).size].astype(np.float64)
 
+    def values(self, name: str) -> dict[str, np.ndarray]:
+        return {p.name: self.get(name, p.name) for p in self.term(name).definition.params}
+
     def set(self, name: str, **values) -> None:
         """Overwrite parameters of an active effect, e.g. ``set("gravity", g=(0, -9.8, 0))``."""
         t = self.term(name)
@@ -168,13 +336,53 @@ class Effects:
             flat[off : off + prm.size] = _check_values(name, prm, np.atleast_1d(np.asarray(val, dtype=np.float64)))
         t.p.from_numpy(flat.astype(_ti.numpy_dtype()))
 
+    # -- all parameters as one vector (the torch boundary's ``params``) ---------------------------------------------
+    def param_names(self) -> list[str]:
+        """``effect.param[i]`` for every entry of :meth:`flat`, in order."""
+        out = []
+        for t in self.terms:
+            for p in t.definition.params:
+                out += [f"{t.name}.{p.name}" + (f"[{i}]" if p.size > 1 else "") for i in range(p.size)]
+        return out
+
+    def flat(self) -> np.ndarray:
+        """Every parameter of every term, concatenated in term order (parameterless terms contribute nothing)."""
+        parts = [t.p.to_numpy()[: t.definition.size].astype(np.float64) for t in self.terms]
+        return np.concatenate(parts) if parts else np.zeros(0)
+
+    def set_flat(self, values) -> None:
+        vals = np.asarray(values, dtype=np.float64).reshape(-1)
+        if len(vals) != len(self.param_names()):
+            raise CausalGSError(f"effect parameters: got {len(vals)} values, expected {len(self.param_names())} "
+                                f"({', '.join(self.param_names()) or 'none'})")  # fmt: skip
+        off = 0
+        for t in self.terms:
+            d = t.definition
+            self.set(t.name, **{p.name: vals[off + d.offset(p.name) : off + d.offset(p.name) + p.size]
+                                for p in d.params})  # fmt: skip
+            off += d.size
+
+    def flat_grad(self) -> np.ndarray:
+        parts = [t.p.grad.to_numpy()[: t.definition.size].astype(np.float64) for t in self.terms]
+        return np.concatenate(parts) if parts else np.zeros(0)
+
+    def zero_grad(self) -> None:
+        for t in self.terms:
+            t.p.grad.fill(0)
+
+    def dt_limit(self, dx: float, rho_min: float) -> float:
+        """The smallest stable substep any term imposes (inf if none does)."""
+        out = math.inf
+        for t in self.terms:
+            if t.definition.dt_limit is not None:
+                out = min(out, t.definition.dt_limit(self.values(t.name), dx, rho_min))
+        return out
+
     def spec(self) -> str:
         """The canonical spec string of the current terms and values (round-trips through :meth:`from_spec`)."""
         parts = []
         for t in self.terms:
-            vals = [
-                f"{p.name}={','.join(repr(float(v)) for v in self.get(t.name, p.name))}" for p in t.definition.params
-            ]
+            vals = [f"{k}={','.join(repr(float(v)) for v in a)}" for k, a in self.values(t.name).items()]
             parts.append(t.name + (":" + ":".join(vals) if vals else ""))
         return ";".join(parts)
 
@@ -184,6 +392,8 @@ def _check_values(effect: str, prm: Param, vals: np.ndarray) -> tuple[float, ...
         raise CausalGSError(f"effect '{effect}': parameter '{prm.name}' takes {prm.size} number(s), got {vals.size}")
     if not np.isfinite(vals).all():
         raise CausalGSError(f"effect '{effect}': parameter '{prm.name}' must be finite")
+    if prm.lower is not None and (vals < prm.lower).any():
+        raise CausalGSError(f"effect '{effect}': parameter '{prm.name}' = {float(vals.min()):g} must be >= {prm.lower:g}")
     return tuple(float(v) for v in vals)
 
 

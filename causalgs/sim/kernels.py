@@ -7,6 +7,9 @@ slot ``s + 1``, so no kernel reads a field and then overwrites it (Taichi's glob
 
     clear_grid → p2g(s) → grid_update → g2p(s)
 
+The backward of a substep recomputes its grid (clear_grid, p2g, grid_update), zeroes the grid adjoints and runs the
+gradient kernels in reverse: g2p.grad, grid_update.grad, p2g.grad (see :mod:`causalgs.sim.mpm`).
+
 Kernels loop over ``range(n)`` with the count a runtime argument, so they compile once per store capacity. Stencil
 base indices are clamped into the grid: a particle that leaves it (or turns NaN) cannot write out of bounds; the
 frame check in :mod:`causalgs.sim.mpm` reports it instead.
@@ -38,8 +41,8 @@ def p2g(
     v: ti.template(),
     C: ti.template(),
     F: ti.template(),
-    mass: ti.template(),
     vol: ti.template(),
+    density: ti.template(),
     E: ti.template(),
     nu: ti.template(),
     grid_v_in: ti.template(),
@@ -50,26 +53,30 @@ def p2g(
     lo: ti.math.vec3,
     inv_dx: float,
     model: ti.template(),
+    effects: ti.template(),
 ):
-    """Scatter momentum and mass; F[p, s+1] = (I + dt C[p, s]) F[p, s] and its stress enter the affine momentum."""
+    """Scatter momentum and mass. The trial F = (I + dt C[p, s]) F[p, s] is return-mapped by the plastic terms and
+    stored in F[p, s+1]; its stress (material + stress terms) enters the affine momentum. Mass = density · volume, so
+    the density has a gradient."""
     for p in range(n):
         Xp = (x[p, s] - lo) * inv_dx
         base = _base(Xp, grid_m.shape)
         fx = Xp - ti.cast(base, float)
         w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
-        F_new = (ti.Matrix.identity(float, 3) + dt * C[p, s]) @ F[p, s]
-        F[p, s + 1] = F_new
         mu, lam = lame_ti(E[p], nu[p])
-        tau = kirchhoff(F_new, mu, lam, model)
+        F_new = effects.project((ti.Matrix.identity(float, 3) + dt * C[p, s]) @ F[p, s], mu, lam)
+        F[p, s + 1] = F_new
+        tau = kirchhoff(F_new, mu, lam, model) + effects.stress(F_new, C[p, s], mu, lam)
+        mass = density[p] * vol[p]
         # MLS-MPM eq. 29: the stress force folds into the APIC affine term with ∇w ≈ 4/dx² w (x_i − x_p).
-        affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + mass[p] * C[p, s]
-        mv = mass[p] * v[p, s]
+        affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + mass * C[p, s]
+        mv = mass * v[p, s]
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             offset = ti.Vector([i, j, k])
             dpos = (ti.cast(offset, float) - fx) / inv_dx
             weight = w[i][0] * w[j][1] * w[k][2]
             grid_v_in[base + offset] += weight * (mv + affine @ dpos)
-            grid_m[base + offset] += weight * mass[p]
+            grid_m[base + offset] += weight * mass
 
 
 @ti.kernel
@@ -82,14 +89,14 @@ def grid_update(
     dx: float,
     effects: ti.template(),
 ):
-    """Momentum → velocity, then every external effect in order. Empty nodes keep zero velocity (branch-free: the
-    division uses a safe mass so its adjoint stays finite)."""
+    """Momentum → velocity, then every force and boundary term in order. Empty nodes keep zero velocity
+    (branch-free: the division uses a safe mass so its adjoint stays finite)."""
     for I in ti.grouped(grid_m):
         m = grid_m[I]
         has = m > 0
         v = grid_v_in[I] / ti.select(has, m, 1.0)
         xi = lo + ti.cast(I, float) * dx
-        v = effects.apply(v, xi, I, dt, ti.static(grid_m.shape))
+        v = effects.apply(v, xi, I, dt, dx, ti.static(grid_m.shape))
         grid_v_out[I] = ti.select(has, v, ti.Vector.zero(float, 3))
 
 
@@ -123,6 +130,32 @@ def g2p(
         v[p, s + 1] = new_v
         C[p, s + 1] = new_C
         x[p, s + 1] = x[p, s] + dt * new_v
+
+
+@ti.kernel
+def clear_grid_grad(grid_v_in: ti.template(), grid_m: ti.template(), grid_v_out: ti.template()):
+    """Zero the grid adjoints before the gradient kernels of one substep (the grid is per-substep scratch)."""
+    for I in ti.grouped(grid_m):
+        grid_v_in.grad[I] = ti.Vector.zero(float, 3)
+        grid_m.grad[I] = 0.0
+        grid_v_out.grad[I] = ti.Vector.zero(float, 3)
+
+
+@ti.kernel
+def carry_adjoint(x: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), dst: ti.i32, n: ti.i32):
+    """Between two segments of the backward: the adjoint of slot 0 (the start of the later segment) becomes the
+    adjoint of slot ``dst`` (the end of the earlier one); every other slot's adjoint is zeroed."""
+    for p in range(n):
+        gx, gv, gC, gF = x.grad[p, 0], v.grad[p, 0], C.grad[p, 0], F.grad[p, 0]
+        for s in range(x.grad.shape[1]):
+            x.grad[p, s] = ti.Vector.zero(float, 3)
+            v.grad[p, s] = ti.Vector.zero(float, 3)
+            C.grad[p, s] = ti.Matrix.zero(float, 3, 3)
+            F.grad[p, s] = ti.Matrix.zero(float, 3, 3)
+        x.grad[p, dst] = gx
+        v.grad[p, dst] = gv
+        C.grad[p, dst] = gC
+        F.grad[p, dst] = gF
 
 
 @ti.kernel

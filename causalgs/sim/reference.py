@@ -10,7 +10,7 @@ import itertools
 
 import torch
 
-from causalgs.sim.effects import REGISTRY, WALL_BAND, parse_spec
+from causalgs.sim.effects import EPS, GRID_STAGES, REGISTRY, WALL_BAND, parse_spec
 from causalgs.sim.materials import POLAR_ITERS, lame
 
 
@@ -48,12 +48,41 @@ def effects_list(spec: str) -> list[tuple[str, dict[str, tuple[float, ...]]]]:
     return sorted(out, key=lambda e: REGISTRY[e[0]].order)
 
 
-def _apply_effects(v: torch.Tensor, I: torch.Tensor, dt: float, shape, effects) -> torch.Tensor:
+def _vec(p, name, dtype):
+    return torch.tensor(p[name], dtype=dtype)
+
+
+def _norm(v: torch.Tensor) -> torch.Tensor:
+    return torch.sqrt((v * v).sum(-1, keepdim=True) + EPS * EPS)
+
+
+def _contact(v, x, p, dx):
+    n = _vec(p, "n", v.dtype)
+    n = n / torch.sqrt((n * n).sum() + EPS * EPS)
+    phi = x @ n - p["d"][0]
+    return n, torch.clamp(0.5 - phi / dx, 0.0, 1.0)[:, None]
+
+
+def _apply_effects(v: torch.Tensor, x: torch.Tensor, I: torch.Tensor, dt: float, dx: float, shape, effects):
     for name, p in effects:
-        if name == "gravity":
-            v = v + dt * torch.tensor(p["g"], dtype=v.dtype)
+        if REGISTRY[name].order not in GRID_STAGES:
+            continue
+        if name in ("gravity", "force"):
+            v = v + dt * _vec(p, "g" if name == "gravity" else "b", v.dtype)
         elif name == "linear_drag":
             v = v * torch.exp(torch.tensor(-p["c"][0] * dt, dtype=v.dtype))
+        elif name == "quadratic_drag":
+            v = v / (1.0 + p["k"][0] * dt * _norm(v))
+        elif name == "ground":
+            n, w = _contact(v, x, p, dx)
+            vn = (v @ n)[:, None]
+            vt = v - vn * n
+            scale = torch.clamp(1.0 + p["mu"][0] * vn / _norm(vt), min=0.0)
+            vc = torch.where(vn < 0, vt * scale, v)
+            v = v + w * (vc - v)
+        elif name == "ground_sticky":
+            _, w = _contact(v, x, p, dx)
+            v = (1.0 - w) * v
         elif name == "walls":
             hi = torch.tensor(shape) - WALL_BAND
             into = ((I < WALL_BAND) & (v < 0)) | ((I >= hi) & (v > 0))
@@ -63,8 +92,31 @@ def _apply_effects(v: torch.Tensor, I: torch.Tensor, dt: float, shape, effects) 
     return v
 
 
+def _project(F: torch.Tensor, mu: torch.Tensor, effects) -> torch.Tensor:
+    for name, p in effects:
+        if name == "plasticity":
+            R = polar_rotation(F)
+            S = R.transpose(-1, -2) @ F
+            S = 0.5 * (S + S.transpose(-1, -2))
+            I = torch.eye(3, dtype=F.dtype)
+            m = S.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] / 3.0
+            D = S - m * I
+            q = 1.5**0.5 * 2.0 * mu[:, None, None] * torch.sqrt((D * D).sum((-1, -2), keepdim=True) + EPS * EPS)
+            scale = torch.clamp(p["yield_stress"][0] / q, max=1.0)
+            F = R @ (m * I + scale * D)
+    return F
+
+
+def _extra_stress(F: torch.Tensor, C: torch.Tensor, effects) -> torch.Tensor:
+    tau = torch.zeros_like(F)
+    for name, p in effects:
+        if name == "damping":
+            tau = tau + p["eta"][0] * torch.linalg.det(F)[:, None, None] * (C + C.transpose(-1, -2))
+    return tau
+
+
 def substep(state: dict, mat: dict, dt: float, lo, dx: float, shape, model: str, effects) -> dict:
-    """One substep. ``state``: x [n,3], v [n,3], C [n,3,3], F [n,3,3]; ``mat``: mass, vol, E, nu [n]."""
+    """One substep. ``state``: x [n,3], v [n,3], C [n,3,3], F [n,3,3]; ``mat``: vol, density, E, nu [n]."""
     x, v, C, F = state["x"], state["v"], state["C"], state["F"]
     dtype, n = x.dtype, len(x)
     inv_dx = 1.0 / dx
@@ -76,11 +128,12 @@ def substep(state: dict, mat: dict, dt: float, lo, dx: float, shape, model: str,
     w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
 
     I3 = torch.eye(3, dtype=dtype)
-    F_new = (I3 + dt * C) @ F
     mu, lam = lame(mat["E"], mat["nu"])
-    tau = kirchhoff(F_new, mu, lam, model)
-    affine = (-dt * mat["vol"] * 4.0 * inv_dx * inv_dx)[:, None, None] * tau + mat["mass"][:, None, None] * C
-    mv = mat["mass"][:, None] * v
+    F_new = _project((I3 + dt * C) @ F, mu, effects)
+    tau = kirchhoff(F_new, mu, lam, model) + _extra_stress(F_new, C, effects)
+    mass = mat["density"] * mat["vol"]
+    affine = (-dt * mat["vol"] * 4.0 * inv_dx * inv_dx)[:, None, None] * tau + mass[:, None, None] * C
+    mv = mass[:, None] * v
 
     ncell = int(shape[0] * shape[1] * shape[2])
     grid_p = torch.zeros(ncell, 3, dtype=dtype)
@@ -96,12 +149,12 @@ def substep(state: dict, mat: dict, dt: float, lo, dx: float, shape, model: str,
         weight = w[i][:, 0] * w[j][:, 1] * w[k][:, 2]
         node = flat(base + off)
         grid_p.index_add_(0, node, weight[:, None] * (mv + (affine @ dpos[:, :, None])[:, :, 0]))
-        grid_m.index_add_(0, node, weight * mat["mass"])
+        grid_m.index_add_(0, node, weight * mass)
 
     has = grid_m > 0
     gv = grid_p / torch.where(has, grid_m, torch.ones_like(grid_m))[:, None]
     idx = torch.stack(torch.meshgrid(*[torch.arange(s) for s in shape], indexing="ij"), -1).reshape(-1, 3)
-    gv = _apply_effects(gv, idx, dt, shape, effects)
+    gv = _apply_effects(gv, lo + idx.to(dtype) * dx, idx, dt, dx, shape, effects)
     gv = torch.where(has[:, None], gv, torch.zeros_like(gv))
 
     new_v = torch.zeros(n, 3, dtype=dtype)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -111,3 +113,166 @@ def test_unphysical_materials_are_refused(ti64, mk):
     sim.set_state(x0, torch.zeros(len(x0), 3, dtype=torch.float64))
     with pytest.raises(CausalGSError, match=r"particle 3 has nu = 0.5; the simulator needs nu in \(-1, 0.5\)"):
         sim.advance(1, 25.0)
+
+
+def _com_velocity(state) -> torch.Tensor:
+    return state["v"].mean(0)
+
+
+def test_elastic_bar_first_longitudinal_mode(ti64, mk):
+    """A free bar started in its first longitudinal mode oscillates at f = (1/2L)·sqrt(E/ρ) (nu = 0, so the bar and
+    the P-wave speed coincide whatever the cross-section), within 10%."""
+    L, E, rho = 0.75, 1.0e4, 1.0e3
+    n_along, n_across = int(round(L / (mk.DX / 2))), 4
+    x0 = mk.block((0.5, 0.5, 0.5), count=n_along)  # a cube of lattice points, then cut to the bar
+    keep = (x0[:, 1] - 0.5).abs() < n_across * mk.DX / 4
+    keep &= (x0[:, 2] - 0.5).abs() < n_across * mk.DX / 4
+    x0 = x0[keep]
+    store = mk.store(len(x0))
+    mk.fill(store, x0, E=E, nu=0.0, density=rho)
+    lo, hi = float(x0[:, 0].min()), float(x0[:, 0].max())
+    length = hi - lo + mk.DX / 2  # each particle stands for a cell of spacing DX/2
+    xi = (x0[:, 0] - lo + mk.DX / 4) / length
+    v = torch.zeros_like(x0)
+    v[:, 0] = 0.05 * torch.cos(math.pi * xi)
+    sim = Simulator(store, SimConfig(res=16, effects=""))
+    sim.set_state(x0, v)
+    left, right = xi < 0.15, xi > 0.85
+    fps = 200.0
+    ext = [0.0]
+    for _ in range(130):
+        x = sim.advance(1, fps)["x"]
+        ext.append(float(x[right, 0].mean() - x[left, 0].mean()) - float(x0[right, 0].mean() - x0[left, 0].mean()))
+    ext = torch.tensor(ext)
+    # The extension starts at 0 going negative; crossings of zero at T/2, T, 3T/2, ...
+    s = torch.sign(ext[1:])
+    idx = torch.nonzero(s[1:] != s[:-1]).flatten() + 1
+    crossings = [(float(i) + float(ext[i] / (ext[i] - ext[i + 1]))) / fps for i in idx.tolist()]
+    assert len(crossings) >= 2, f"no oscillation seen: extension {ext[::10].tolist()}"
+    period = 2 * (crossings[1] - crossings[0])
+    law = 2 * length / math.sqrt(E / rho)
+    assert abs(period - law) < 0.1 * law, f"period {period:.4g} s, law {law:.4g} s"
+
+
+def test_block_dropped_on_the_ground_comes_to_rest(ti64, mk):
+    x0 = mk.block((0.5, 0.5, 0.4))
+    store = mk.store(len(x0))
+    mk.fill(store, x0)
+    sim = Simulator(store, SimConfig(res=16, effects="gravity;ground:d=0.2:mu=0.5;walls"))
+    sim.set_state(x0, torch.zeros(len(x0), 3, dtype=torch.float64))
+    out = sim.advance(40, 25.0)
+    assert float(out["v"].norm(dim=1).max()) < 0.05, "the block should be at rest after 1.6 s"
+    bottom = float(out["x"][:, 2].min())
+    assert 0.2 - mk.DX < bottom < 0.2 + mk.DX, f"resting bottom at z = {bottom:.4g}, the ground is at 0.2"
+    height = float(out["x"][:, 2].max() - out["x"][:, 2].min())
+    rest = float(x0[:, 2].max() - x0[:, 2].min())
+    assert height > 0.8 * rest, "the block should stand on the ground, not flatten into it"
+
+
+@pytest.mark.parametrize("mu", [0.2, 0.4])
+def test_coulomb_ground_decelerates_at_mu_g(ti64, mk, mu):
+    """A block sliding on a Coulomb ground slows at mu·g (within 10%) until it stops."""
+    x0 = mk.block((0.25, 0.5, 0.2 + 3 * mk.DX / 4 + 0.01))
+    store = mk.store(len(x0))
+    mk.fill(store, x0)
+    sim = Simulator(store, SimConfig(res=16, effects=f"gravity;ground:d=0.2:mu={mu};walls"))
+    v0 = torch.zeros(len(x0), 3, dtype=torch.float64)
+    v0[:, 0] = 1.2
+    sim.set_state(x0, v0)
+    fps, t, vx = 50.0, [], []
+    for f in range(12):
+        state = sim.advance(1, fps)
+        t.append((f + 1) / fps)
+        vx.append(float(_com_velocity(state)[0]))
+    t, vx = torch.tensor(t[2:], dtype=torch.float64), torch.tensor(vx[2:], dtype=torch.float64)  # after touch-down
+    assert float(vx.min()) > 0.05, "still sliding over the fitted window"
+    slope = float(((t - t.mean()) * (vx - vx.mean())).sum() / ((t - t.mean()) ** 2).sum())
+    assert abs(-slope - mu * 9.8) < 0.1 * mu * 9.8, f"deceleration {-slope:.4g} m/s², mu·g = {mu * 9.8:.4g}"
+
+
+def test_drag_and_force_field_laws(ti64, mk):
+    """Linear drag: v = v0 e^(-ct) (within 5%); quadratic drag: v = v0 / (1 + k|v0| t); a uniform force field:
+    v = v0 + b t. One compiled simulator, each law switched on through its parameters."""
+    x0 = mk.block((0.5, 0.5, 0.5), count=4)
+    store = mk.store(len(x0))
+    mk.fill(store, x0)
+    sim = Simulator(store, SimConfig(res=16, effects="linear_drag:c=0;quadratic_drag:k=0;force:b=0,0,0"))
+    v0 = torch.tensor([0.8, -0.4, 0.2], dtype=torch.float64)
+    speed = float(v0.norm())
+    fps, frames = 25.0, 12
+    t = frames / fps
+    cases = [
+        ({"linear_drag": {"c": 2.0}}, v0 * math.exp(-2.0 * t)),
+        ({"quadratic_drag": {"k": 3.0}}, v0 / (1 + 3.0 * speed * t)),
+        ({"force": {"b": (0.5, 0.0, -1.0)}}, v0 + torch.tensor([0.5, 0.0, -1.0], dtype=torch.float64) * t),
+    ]
+    for settings, law in cases:
+        for name in ("linear_drag", "quadratic_drag"):
+            sim.effects.set(name, **{"c" if name == "linear_drag" else "k": 0.0})
+        sim.effects.set("force", b=(0.0, 0.0, 0.0))
+        for name, vals in settings.items():
+            sim.effects.set(name, **vals)
+        sim.set_state(x0, v0.expand(len(x0), 3))
+        got = _com_velocity(sim.advance(frames, fps))
+        err = float((got - law).norm())
+        assert err < 0.05 * float((law - v0).norm()), f"{settings}: velocity {got.tolist()} vs law {law.tolist()}"
+
+
+def _elastic_energy(F, E, nu, vol):
+    mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+    J = torch.linalg.det(F)
+    tr = (F * F).sum((-1, -2))
+    return float((vol * (0.5 * mu * (tr - 3) - mu * torch.log(J) + 0.5 * lam * torch.log(J) ** 2)).sum())
+
+
+def test_material_damping_dissipates_wobble_but_not_momentum(ti64, mk):
+    x0 = mk.block((0.5, 0.5, 0.5))
+    n = len(x0)
+    store = mk.store(n)
+    mk.fill(store, x0)
+    sim = Simulator(store, SimConfig(res=16, effects="damping:eta=0;plasticity:yield_stress=1e12"))
+    r = x0 - x0.mean(0)
+    S = torch.tensor([[1.5, 0.4, 0.0], [0.4, -1.0, 0.3], [0.0, 0.3, 0.8]], dtype=torch.float64)
+    v = torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64) + r @ S.T
+    mass = store.to_torch("mass")
+    vol = store.to_torch("vol")
+
+    def energy(state):
+        ke = 0.5 * float((mass[:, None] * (state["v"] - state["v"].mean(0)) ** 2).sum())
+        return ke + _elastic_energy(state["F"], 1.0e4, 0.3, vol)
+
+    final = {}
+    for eta in (0.0, 20.0):
+        sim.effects.set("damping", eta=eta)
+        sim.set_state(x0, v)
+        e0 = energy(sim.state())
+        P0, L0 = momenta(sim.state(), mass, mk.DX)
+        state = sim.advance(10, 25.0)
+        P, L = momenta(state, mass, mk.DX)
+        assert float((P - P0).norm()) < 1e-8 * float(P0.norm())
+        assert float((L - L0).norm()) < 1e-5 * max(float(L0.norm()), 1e-3)
+        final[eta] = energy(state) / e0
+    assert final[0.0] > 0.6, f"undamped internal energy fell to {final[0.0]:.2f} of its start"
+    assert final[20.0] < 0.3 * final[0.0], f"damped {final[20.0]:.3f} vs undamped {final[0.0]:.3f}"
+
+
+def test_plasticity_leaves_permanent_deformation(ti64, mk):
+    """Squeeze a block along z, let material damping settle it: an elastic block springs back to its height, a
+    plastic one (yield stress well below the squeeze stress) keeps a permanent set."""
+    x0 = mk.block((0.5, 0.5, 0.5))
+    n = len(x0)
+    store = mk.store(n)
+    mk.fill(store, x0)
+    sim = Simulator(store, SimConfig(res=16, effects="damping:eta=20;plasticity:yield_stress=1e12"))
+    r = x0 - x0.mean(0)
+    v = torch.zeros_like(x0)
+    v[:, 2] = -6.0 * r[:, 2]  # squeeze: the top moves down, the bottom up
+    height0 = float(x0[:, 2].max() - x0[:, 2].min())
+    heights = {}
+    for ys in (1e12, 50.0):
+        sim.effects.set("plasticity", yield_stress=ys)
+        sim.set_state(x0, v)
+        x = sim.advance(25, 25.0)["x"]
+        heights[ys] = float(x[:, 2].max() - x[:, 2].min()) / height0
+    assert abs(heights[1e12] - 1.0) < 0.03, f"elastic block ends at {heights[1e12]:.3f} of its height"
+    assert heights[50.0] < 0.93, f"plastic block ends at {heights[50.0]:.3f} of its height (no permanent set)"

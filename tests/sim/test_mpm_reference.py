@@ -32,8 +32,8 @@ def test_substeps_match_reference(ti64, mk, model, substeps):
     state = _random_state(n, seed=substeps)
     g = torch.Generator().manual_seed(7)
     mat = {
-        "mass": torch.rand(n, generator=g, dtype=torch.float64) * 1e-1 + 5e-2,
         "vol": torch.rand(n, generator=g, dtype=torch.float64) * 1e-4 + 1e-4,
+        "density": torch.rand(n, generator=g, dtype=torch.float64) * 1e3 + 5e2,
         "E": torch.rand(n, generator=g, dtype=torch.float64) * 9e3 + 1e3,
         "nu": torch.rand(n, generator=g, dtype=torch.float64) * 0.2 + 0.2,
     }
@@ -66,7 +66,7 @@ def test_segment_boundary_is_seamless(ti64, mk):
     out = []
     for store, segment in zip(stores, (8, 2), strict=True):
         store.resize(n)
-        for name, val in (("mass", 0.1), ("vol", 1e-4), ("E", 5e3)):
+        for name, val in (("density", 1e3), ("vol", 1e-4), ("E", 5e3)):
             store.from_torch(name, torch.full((n,), val))
         sim = Simulator(store, SimConfig(res=16, effects=SPEC, segment=segment))
         sim.set_state(**state)
