@@ -155,3 +155,150 @@ def render_benchmark(
             else:
                 rec["reference"] = f"skipped: {size * size * n:.1e} Gaussian-pixel pairs"
             yield rec
+
+
+# -- simulator ------------------------------------------------------------------------------------------------------
+
+SIM_EFFECTS = "gravity;ground:d=0.1:mu=0.3;walls"
+SIM_CAPACITY = 32768  # one store for every particle count: one compile per grid resolution
+
+
+def sim_block(n: int, res: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """A cube of about ``n`` particles at 8 per cell (spacing dx/2) above the ground plane of the unit box, moving
+    down and sideways with a little noise. Returns x [m, 3], v [m, 3] (m = round(n^(1/3))³) and the spacing."""
+    import itertools
+
+    side = max(2, round(n ** (1.0 / 3.0)))
+    spacing = 0.5 / res
+    idx = torch.tensor(list(itertools.product(range(side), repeat=3)), dtype=torch.float64)
+    x = torch.tensor([0.5, 0.5, 0.5]) + (idx - (side - 1) / 2) * spacing
+    g = torch.Generator().manual_seed(seed)
+    v = torch.tensor([0.5, 0.0, -1.0]) + 0.1 * torch.randn(len(x), 3, generator=g, dtype=torch.float64)
+    return x, v, spacing
+
+
+def _sim_setup(store, res: int, n: int, segment: int, effects: str = SIM_EFFECTS):
+    from causalgs.sim import SimConfig, Simulator
+
+    x, v, spacing = sim_block(n, res)
+    m = len(x)
+    store.resize(m)
+    store.from_torch("vol", torch.full((m,), spacing**3))
+    store.from_torch("density", torch.full((m,), 1.0e3))
+    store.from_torch("mass", torch.full((m,), 1.0e3 * spacing**3))
+    store.from_torch("E", torch.full((m,), 1.0e5))
+    store.from_torch("nu", torch.full((m,), 0.3))
+    sim = Simulator(store, SimConfig(res=res, segment=segment, effects=effects))
+    sim.set_state(x, v)
+    return sim, x, v
+
+
+def sim_benchmark(
+    counts: Iterable[int] = (1_000, 8_000, 32_000),
+    resolutions: Iterable[int] = (32, 64),
+    repeats: int = 5,
+    segment: int = 8,
+    segments: int = 2,
+) -> Iterable[dict]:
+    """One record per (grid resolution, particle count): forward and forward+backward ms per substep (medians over
+    ``repeats`` runs of ``segments`` checkpoint segments), and the memory the differentiable state takes for one
+    simulated second with checkpoints (one segment of slots + a checkpoint per segment) and without (a slot per
+    substep), from the field sizes allocated."""
+    from causalgs import _ti
+    from causalgs.store import ParticleStore
+
+    dtype_bytes = 8 if _ti.runtime().precision == "float64" else 4
+    for res in resolutions:
+        store = ParticleStore(SIM_CAPACITY, sh_degree=0)
+        for n in counts:
+            if n > SIM_CAPACITY:
+                raise ValueError(f"at most {SIM_CAPACITY} particles in the simulator benchmark, got {n}")
+            sim, x, v = _sim_setup(store, res, n, segment)
+            dt = sim.stable_dt()
+            steps = segment * segments
+
+            def forward(sim=sim, x=x, v=v, dt=dt, steps=steps):
+                sim.set_state(x, v)
+                sim.step(steps, dt)
+
+            def forward_backward(sim=sim, x=x, v=v, dt=dt, steps=steps):
+                sim.set_state(x, v)
+                out, tape = sim.rollout([steps * dt * (1 - 1e-12)], outputs=("x",))
+                sim.backward(tape, {"x": torch.ones_like(out["x"])})
+
+            sim.config.dt = dt  # the rollout plans with the same substep
+            first_f, fwd = _median_ms(forward, repeats)
+            first_fb, fb = _median_ms(forward_backward, repeats)
+            sim.config.dt = None
+            m = store.n
+            per_slot = 2 * 24 * m * dtype_bytes  # x, v, C, F and their adjoints
+            grid_nodes = math.prod(sim.geo.shape)
+            grid = 2 * 7 * grid_nodes * dtype_bytes
+            per_second = math.ceil(1.0 / dt)
+            n_seg = math.ceil(per_second / segment)
+            yield {
+                "bench": "sim",
+                "precision": _ti.runtime().precision,
+                "arch": _ti.runtime().arch,
+                "grid": res,
+                "grid_nodes": grid_nodes,
+                "particles": m,
+                "dt_s": dt,
+                "segment": segment,
+                "forward_ms_per_substep": round(fwd / steps, 3),
+                "forward_backward_ms_per_substep": round(fb / steps, 3),
+                "backward_over_forward": round(fb / fwd, 2),
+                "first_forward_ms": round(first_f, 1),
+                "first_forward_backward_ms": round(first_fb, 1),
+                "substeps_per_second": per_second,
+                "memory_checkpointed_mb": round(((segment + 1) * per_slot + n_seg * per_slot / 2 + grid) / 2**20, 1),
+                "memory_full_tape_mb": round(((per_second + 1) * per_slot + grid) / 2**20, 1),
+                "repeats": repeats,
+            }
+
+
+def sim_compile_probe(res: int = 32, segment: int = 8, effects: str = SIM_EFFECTS) -> dict:
+    """Seconds until the first forward substep and the first backward complete in this process (compile or cache
+    load of every MPM kernel and gradient kernel). Run it in a fresh process, with an empty or a filled cache."""
+    from causalgs.store import ParticleStore
+
+    store = ParticleStore(SIM_CAPACITY, sh_degree=0)
+    t0 = time.perf_counter()
+    sim, x, v = _sim_setup(store, res, 1000, segment, effects)
+    dt = sim.stable_dt()
+    sim.step(1, dt)
+    t1 = time.perf_counter()
+    sim.set_state(x, v)
+    out, tape = sim.rollout([dt * (1 - 1e-12)], outputs=("x",))
+    t2 = time.perf_counter()
+    sim.backward(tape, {"x": torch.ones_like(out["x"])})
+    t3 = time.perf_counter()
+    return {"forward_s": round(t1 - t0, 2), "backward_s": round(t3 - t2, 2), "total_s": round(t3 - t0, 2)}
+
+
+def sim_compile_benchmark(precision: str = "float32", res: int = 32, effects: str = SIM_EFFECTS) -> dict:
+    """Cold (empty offline cache) and warm (the cache the cold run filled) compile times of the simulator's forward
+    and differentiable step, each in a fresh process."""
+    import json
+    import os
+    import subprocess
+    import sys
+    import tempfile
+
+    code = (
+        "import json, sys\n"
+        "from causalgs import _ti\n"
+        f"_ti.init('cpu', {precision!r}, quiet=True)\n"
+        "from causalgs.bench import sim_compile_probe\n"
+        f"print(json.dumps(sim_compile_probe({res}, effects={effects!r})))\n"
+    )
+    rec = {"bench": "sim_compile", "precision": precision, "grid": res, "effects": effects}
+    with tempfile.TemporaryDirectory(prefix="causalgs-compile-") as cache:
+        env = dict(os.environ, CAUSALGS_TI_CACHE=cache)
+        for label in ("cold", "warm"):
+            out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=False)
+            if out.returncode != 0:
+                raise RuntimeError(f"compile probe failed: {out.stderr.strip().splitlines()[-1:]}")
+            probe = json.loads(out.stdout.strip().splitlines()[-1])
+            rec.update({f"{label}_{k}": v for k, v in probe.items()})
+    return rec

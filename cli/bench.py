@@ -67,3 +67,43 @@ def render(sizes, counts, repeats, scene, reference_limit, as_json, device, prec
             table.add_row(*(str(r.get(c, "-")) for c in ("size", "gaussians", "forward_ms", "forward_backward_ms",
                                                          "speedup_forward_backward")))  # fmt: skip
         Console(stderr=True).print(table)
+
+
+@bench.command()
+@click.option("--counts", default="1000,8000,32000", show_default=True, help="Particle counts, comma-separated.")
+@click.option("--grids", default="32,64", show_default=True, help="Grid resolutions (cells per side), comma-separated.")
+@click.option("--repeats", type=click.IntRange(1, 1000), default=5, show_default=True, help="Timed runs per case.")
+@click.option("--segment", type=click.IntRange(1, 256), default=8, show_default=True,
+              help="Substeps per checkpoint segment.")  # fmt: skip
+@click.option("--compile/--no-compile", "compile_", default=True, show_default=True,
+              help="Also measure cold and warm compile time of the differentiable step (fresh processes, an empty "
+              "then a filled kernel cache; minutes when cold).")  # fmt: skip
+@click.option("--json", "as_json", is_flag=True, help="Print JSON lines only (default: JSON lines plus a table).")
+@device_option
+@precision_option
+def sim(counts, grids, repeats, segment, compile_, as_json, device, precision):
+    """MPM forward and forward+backward milliseconds per substep (a falling elastic block, gravity, Coulomb ground,
+    walls), the memory of the differentiable state for one simulated second with and without checkpoints, and the
+    cold/warm compile time of the differentiable step."""
+    from causalgs import _ti
+    from causalgs.bench import sim_benchmark, sim_compile_benchmark
+
+    _ti.init(device, precision)
+    rows = []
+    for rec in sim_benchmark(_ints(counts, "--counts"), _ints(grids, "--grids"), repeats, segment):
+        click.echo(json.dumps(rec))
+        rows.append(rec)
+    if compile_:
+        click.echo(json.dumps(sim_compile_benchmark(precision)))
+    if not as_json:
+        from rich.console import Console
+        from rich.table import Table
+
+        cols = ("grid", "particles", "forward_ms_per_substep", "forward_backward_ms_per_substep",
+                "backward_over_forward", "memory_checkpointed_mb", "memory_full_tape_mb")  # fmt: skip
+        table = Table(title=f"sim ({precision}, {rows[0]['arch'] if rows else device})")
+        for col in cols:
+            table.add_column(col, justify="right")
+        for r in rows:
+            table.add_row(*(str(r.get(c, "-")) for c in cols))
+        Console(stderr=True).print(table)

@@ -7,19 +7,23 @@ An effect is a ``ti.func`` registered under a name with its parameters and a *st
 - ``PLASTIC`` terms return-map the trial deformation gradient (plasticity);
 - ``STRESS`` terms add to the material's Kirchhoff stress (material damping).
 
-An :class:`Effects` object holds the chosen terms; the kernels receive it as a static argument and apply the terms of
-each stage in a ``ti.static`` loop (no if-chain over effect names). A new effect is one decorated function.
+An :class:`Effects` object holds the chosen terms; the kernels receive its :class:`Stages` as a static argument and
+apply the terms of each stage in a ``ti.static`` loop (no if-chain over effect names). A new effect is one decorated
+function.
 
-Parameters live in one small Taichi field per term (``needs_grad=True``: the checkpointed backward accumulates their
-gradients), addressed by name: ``effects.get("gravity", "g")``, ``effects.set("gravity", g=(0, 0, -9.8))``, or as
-one vector (:meth:`Effects.flat`, :meth:`Effects.param_names`). Every term is written so its parameters have
-gradients: contact uses a one-cell ramp rather than a hard in/out test, norms are smoothed at zero.
+Parameter values belong to the :class:`Effects` object; the kernels read them from one small Taichi field per
+registered effect and runtime (``needs_grad=True``: the checkpointed backward accumulates their gradients there),
+so that any number of simulators share one compiled set of kernels. Parameters are addressed by name:
+``effects.get("gravity", "g")``, ``effects.set("gravity", g=(0, 0, -9.8))``, or as one vector (:meth:`Effects.flat`,
+:meth:`Effects.param_names`). Every term is written so its parameters have gradients: contact uses a one-cell ramp
+rather than a hard in/out test, norms are smoothed at zero.
 
 Spec strings name the terms: ``"gravity:g=0,0,-9.8;ground:mu=0.4;linear_drag:c=0.5"``; a parameter left out takes
 its default; the order in the spec does not matter.
 """
 
 # No `from __future__ import annotations`: Taichi 1.7 reads kernel annotations as live objects.
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -254,59 +258,110 @@ def damping(F, C, mu, lam, p: ti.template()):
 
 
 class Term:
-    """One chosen effect and its parameter field ``p`` (at least one entry, so parameterless terms compile too)."""
+    """One chosen effect: its definition and its parameter values (a host-side vector, packed in parameter order)."""
 
     def __init__(self, definition: EffectDef, values: dict[str, tuple[float, ...]]):
         self.definition = definition
-        self.p = ti.field(_ti.real(), shape=max(definition.size, 1), needs_grad=True)
-        flat = np.zeros(max(definition.size, 1))
+        self.values = np.zeros(definition.size)
         for prm in definition.params:
             off = definition.offset(prm.name)
-            flat[off : off + prm.size] = values.get(prm.name, prm.default)
-        self.p.from_numpy(flat.astype(_ti.numpy_dtype()))
+            self.values[off : off + prm.size] = values.get(prm.name, prm.default)
 
     @property
     def name(self) -> str:
         return self.definition.name
 
 
+# Kernel-side state, shared per Taichi runtime. A kernel compiles once per distinct template argument and its
+# compiled code names the fields it touches; fresh parameter fields for every Effects object would mean a fresh
+# compile of every MPM kernel and gradient kernel (minutes) for every new simulator. So each registered effect has
+# one parameter field per runtime (the bank), and each *set* of effect names one Stages object; an Effects object
+# uploads its values into the bank before the kernels run.
+_bank: dict[tuple[str, int], object] = {}
+_stages: dict[tuple[tuple[str, ...], int], "Stages"] = {}
+_owner: dict[str, tuple[int, int, int]] = {}  # effect name -> (uid, version, runtime) of the values in the bank
+_uids = itertools.count()
+
+
+def _param_field(name: str):
+    key = (name, _ti.generation())
+    if key not in _bank:
+        for k in [k for k in _bank if k[1] != _ti.generation()]:
+            del _bank[k]
+        _bank[key] = ti.field(_ti.real(), shape=max(REGISTRY[name].size, 1), needs_grad=True)
+    return _bank[key]
+
+
 @ti.data_oriented
+class Stages:
+    """What the kernels see of a set of effects: per stage, the (definition, parameter field) pairs in order. Its
+    ``ti.func`` methods apply every term of a stage in a ``ti.static`` loop (straight-line code)."""
+
+    def __init__(self, names: tuple[str, ...]):
+        defs = sorted((REGISTRY[n] for n in names), key=lambda d: d.order)
+        self.grid_terms = [(d, _param_field(d.name)) for d in defs if d.order in GRID_STAGES]
+        self.plastic_terms = [(d, _param_field(d.name)) for d in defs if d.order == PLASTIC]
+        self.stress_terms = [(d, _param_field(d.name)) for d in defs if d.order == STRESS]
+
+    @ti.func
+    def apply(self, v, x, I, dt, dx, res: ti.template()):
+        out = v
+        for k in ti.static(range(len(self.grid_terms))):
+            out = self.grid_terms[k][0].func(out, x, I, dt, dx, self.grid_terms[k][1], res)
+        return out
+
+    @ti.func
+    def project(self, F, mu, lam):
+        out = F
+        for k in ti.static(range(len(self.plastic_terms))):
+            out = self.plastic_terms[k][0].func(out, mu, lam, self.plastic_terms[k][1])
+        return out
+
+    @ti.func
+    def stress(self, F, C, mu, lam):
+        out = ti.Matrix.zero(float, 3, 3)
+        for k in ti.static(range(len(self.stress_terms))):
+            out += self.stress_terms[k][0].func(F, C, mu, lam, self.stress_terms[k][1])
+        return out
+
+
+def stages(names) -> Stages:
+    """The shared kernel-side object for the set of effect ``names`` in the current Taichi runtime."""
+    key = (tuple(sorted(names)), _ti.generation())
+    if key not in _stages:
+        for k in [k for k in _stages if k[1] != _ti.generation()]:
+            del _stages[k]
+        _stages[key] = Stages(key[0])
+    return _stages[key]
+
+
 class Effects:
-    """The chosen terms, sorted by stage. The kernels call :meth:`apply` (grid update), :meth:`project` (after the
-    deformation-gradient update) and :meth:`stress` (added to the material's stress); each is a ``ti.static`` loop
-    over the terms of its stage, so a set of effects compiles into straight-line code."""
+    """The chosen terms (sorted by stage: forces, boundary conditions, plasticity, stress) and their values.
+
+    Kernels take :attr:`kernel` (the shared :class:`Stages` of this set of names); call :meth:`upload` before
+    running them, which writes this object's values into the runtime's parameter bank if another object's (or
+    older values) are there. Adjoints of the parameters accumulate in the bank's gradient fields
+    (:meth:`flat_grad`, :meth:`zero_grad`)."""
 
     def __init__(self, terms: list[Term]):
         self.terms = sorted(terms, key=lambda t: t.definition.order)
-        self.grid_terms = [t for t in self.terms if t.definition.order in GRID_STAGES]
-        self.plastic_terms = [t for t in self.terms if t.definition.order == PLASTIC]
-        self.stress_terms = [t for t in self.terms if t.definition.order == STRESS]
+        self.kernel = stages([t.name for t in self.terms])
+        self.uid = next(_uids)
+        self.version = 0
 
     @classmethod
     def from_spec(cls, spec: str) -> "Effects":
         """Parse ``"name:param=v1,v2,...,param=...;name;..."``; every problem is one :class:`CausalGSError` line."""
         return cls([Term(REGISTRY[name], values) for name, values in parse_spec(spec)])
 
-    @ti.func
-    def apply(self, v, x, I, dt, dx, res: ti.template()):
-        out = v
-        for t in ti.static(self.grid_terms):
-            out = t.definition.func(out, x, I, dt, dx, t.p, res)
-        return out
-
-    @ti.func
-    def project(self, F, mu, lam):
-        out = F
-        for t in ti.static(self.plastic_terms):
-            out = t.definition.func(out, mu, lam, t.p)
-        return out
-
-    @ti.func
-    def stress(self, F, C, mu, lam):
-        out = ti.Matrix.zero(float, 3, 3)
-        for t in ti.static(self.stress_terms):
-            out += t.definition.func(F, C, mu, lam, t.p)
-        return out
+    def upload(self) -> None:
+        """Make the bank hold this object's values (a no-op when it already does)."""
+        token = (self.uid, self.version, _ti.generation())
+        for t in self.terms:
+            if t.definition.size and _owner.get(t.name) != token:
+                f = _param_field(t.name)
+                f.from_numpy(t.values.astype(_ti.numpy_dtype()))
+                _owner[t.name] = token
 
     def names(self) -> list[str]:
         return [t.name for t in self.terms]
@@ -321,7 +376,7 @@ class Effects:
         """The current value of parameter ``param`` of effect ``name``."""
         t = self.term(name)
         off = t.definition.offset(param)
-        return t.p.to_numpy()[off : off + t.definition.param(param).size].astype(np.float64)
+        return t.values[off : off + t.definition.param(param).size].copy()
 
     def values(self, name: str) -> dict[str, np.ndarray]:
         return {p.name: self.get(name, p.name) for p in self.term(name).definition.params}
@@ -329,12 +384,13 @@ class Effects:
     def set(self, name: str, **values) -> None:
         """Overwrite parameters of an active effect, e.g. ``set("gravity", g=(0, -9.8, 0))``."""
         t = self.term(name)
-        flat = t.p.to_numpy().astype(np.float64)
+        new = t.values.copy()
         for key, val in values.items():
             off = t.definition.offset(key)
             prm = t.definition.param(key)
-            flat[off : off + prm.size] = _check_values(name, prm, np.atleast_1d(np.asarray(val, dtype=np.float64)))
-        t.p.from_numpy(flat.astype(_ti.numpy_dtype()))
+            new[off : off + prm.size] = _check_values(name, prm, np.atleast_1d(np.asarray(val, dtype=np.float64)))
+        t.values = new
+        self.version += 1
 
     # -- all parameters as one vector (the torch boundary's ``params``) ---------------------------------------------
     def param_names(self) -> list[str]:
@@ -347,8 +403,7 @@ class Effects:
 
     def flat(self) -> np.ndarray:
         """Every parameter of every term, concatenated in term order (parameterless terms contribute nothing)."""
-        parts = [t.p.to_numpy()[: t.definition.size].astype(np.float64) for t in self.terms]
-        return np.concatenate(parts) if parts else np.zeros(0)
+        return np.concatenate([t.values for t in self.terms] + [np.zeros(0)])
 
     def set_flat(self, values) -> None:
         vals = np.asarray(values, dtype=np.float64).reshape(-1)
@@ -363,12 +418,12 @@ class Effects:
             off += d.size
 
     def flat_grad(self) -> np.ndarray:
-        parts = [t.p.grad.to_numpy()[: t.definition.size].astype(np.float64) for t in self.terms]
-        return np.concatenate(parts) if parts else np.zeros(0)
+        parts = [_param_field(t.name).grad.to_numpy()[: t.definition.size].astype(np.float64) for t in self.terms]
+        return np.concatenate([*parts, np.zeros(0)])
 
     def zero_grad(self) -> None:
         for t in self.terms:
-            t.p.grad.fill(0)
+            _param_field(t.name).grad.fill(0)
 
     def dt_limit(self, dx: float, rho_min: float) -> float:
         """The smallest stable substep any term imposes (inf if none does)."""
@@ -393,7 +448,8 @@ def _check_values(effect: str, prm: Param, vals: np.ndarray) -> tuple[float, ...
     if not np.isfinite(vals).all():
         raise CausalGSError(f"effect '{effect}': parameter '{prm.name}' must be finite")
     if prm.lower is not None and (vals < prm.lower).any():
-        raise CausalGSError(f"effect '{effect}': parameter '{prm.name}' = {float(vals.min()):g} must be >= {prm.lower:g}")
+        low = float(vals.min())
+        raise CausalGSError(f"effect '{effect}': parameter '{prm.name}' = {low:g} must be >= {prm.lower:g}")
     return tuple(float(v) for v in vals)
 
 

@@ -5,10 +5,13 @@ Layout follows taichi's mpm88 and difftaichi's diffmpm: quadratic B-spline weigh
 ``x[p, s]``, ``v[p, s]``, ``C[p, s]``, ``F[p, s]`` (the store's per-row axis). A substep reads slot ``s`` and writes
 slot ``s + 1``, so no kernel reads a field and then overwrites it (Taichi's global data access rule for autodiff):
 
-    clear_grid → p2g(s) → grid_update → g2p(s)
+    clear_grid → stress(s) → p2g(s) → grid_update → g2p(s)
 
-The backward of a substep recomputes its grid (clear_grid, p2g, grid_update), zeroes the grid adjoints and runs the
-gradient kernels in reverse: g2p.grad, grid_update.grad, p2g.grad (see :mod:`causalgs.sim.mpm`).
+``stress`` (per particle: deformation update, plasticity, stress) is separate from ``p2g`` (the stencil scatter):
+two small kernels compile much faster than one large one, most of all their gradient kernels, and the scatter does
+not depend on the material model or the effects. The backward of a substep recomputes its grid, zeroes the grid and
+``affine`` adjoints and runs the gradient kernels in reverse: g2p.grad, grid_update.grad, p2g_adjoint (written by
+hand: Taichi's autodiff of the scatter is the slowest kernel to compile), stress.grad (see :mod:`causalgs.sim.mpm`).
 
 Kernels loop over ``range(n)`` with the count a runtime argument, so they compile once per store capacity. Stencil
 base indices are clamped into the grid: a particle that leaves it (or turns NaN) cannot write out of bounds; the
@@ -36,8 +39,7 @@ def _base(Xp, shape: ti.template()):
 
 
 @ti.kernel
-def p2g(
-    x: ti.template(),
+def stress(
     v: ti.template(),
     C: ti.template(),
     F: ti.template(),
@@ -45,38 +47,108 @@ def p2g(
     density: ti.template(),
     E: ti.template(),
     nu: ti.template(),
-    grid_v_in: ti.template(),
-    grid_m: ti.template(),
+    affine: ti.template(),
     s: ti.i32,
     n: ti.i32,
     dt: float,
-    lo: ti.math.vec3,
     inv_dx: float,
     model: ti.template(),
     effects: ti.template(),
 ):
-    """Scatter momentum and mass. The trial F = (I + dt C[p, s]) F[p, s] is return-mapped by the plastic terms and
-    stored in F[p, s+1]; its stress (material + stress terms) enters the affine momentum. Mass = density · volume, so
-    the density has a gradient."""
+    """Per particle: the trial F = (I + dt C[p, s]) F[p, s], return-mapped by the plastic terms, into F[p, s+1]; its
+    Kirchhoff stress (material + stress terms) folded with the APIC term into ``affine[p]`` (MLS-MPM eq. 29: the
+    stress force uses ∇w ≈ 4/dx² w (x_i − x_p)). Mass = density · volume, so the density has a gradient."""
+    for p in range(n):
+        mu, lam = lame_ti(E[p], nu[p])
+        F_new = effects.project((ti.Matrix.identity(float, 3) + dt * C[p, s]) @ F[p, s], mu, lam)
+        F[p, s + 1] = F_new
+        tau = kirchhoff(F_new, mu, lam, model) + effects.stress(F_new, C[p, s], mu, lam)
+        affine[p] = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + (density[p] * vol[p]) * C[p, s]
+
+
+@ti.kernel
+def p2g(
+    x: ti.template(),
+    v: ti.template(),
+    vol: ti.template(),
+    density: ti.template(),
+    affine: ti.template(),
+    grid_v_in: ti.template(),
+    grid_m: ti.template(),
+    s: ti.i32,
+    n: ti.i32,
+    lo: ti.math.vec3,
+    inv_dx: float,
+):
+    """Scatter mass and affine momentum m v + A (x_i − x_p) to the 3×3×3 stencil (independent of the material and
+    the effects, so it compiles once)."""
     for p in range(n):
         Xp = (x[p, s] - lo) * inv_dx
         base = _base(Xp, grid_m.shape)
         fx = Xp - ti.cast(base, float)
         w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
-        mu, lam = lame_ti(E[p], nu[p])
-        F_new = effects.project((ti.Matrix.identity(float, 3) + dt * C[p, s]) @ F[p, s], mu, lam)
-        F[p, s + 1] = F_new
-        tau = kirchhoff(F_new, mu, lam, model) + effects.stress(F_new, C[p, s], mu, lam)
         mass = density[p] * vol[p]
-        # MLS-MPM eq. 29: the stress force folds into the APIC affine term with ∇w ≈ 4/dx² w (x_i − x_p).
-        affine = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + mass * C[p, s]
         mv = mass * v[p, s]
+        A = affine[p]
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             offset = ti.Vector([i, j, k])
             dpos = (ti.cast(offset, float) - fx) / inv_dx
             weight = w[i][0] * w[j][1] * w[k][2]
-            grid_v_in[base + offset] += weight * (mv + affine @ dpos)
+            grid_v_in[base + offset] += weight * (mv + A @ dpos)
             grid_m[base + offset] += weight * mass
+
+
+@ti.kernel
+def p2g_adjoint(
+    x: ti.template(),
+    v: ti.template(),
+    vol: ti.template(),
+    density: ti.template(),
+    affine: ti.template(),
+    grid_v_in: ti.template(),
+    grid_m: ti.template(),
+    s: ti.i32,
+    n: ti.i32,
+    lo: ti.math.vec3,
+    inv_dx: float,
+):
+    """The adjoint of :func:`p2g`, written out: a gather of the grid adjoints into x, v, affine and density.
+
+    Taichi's autodiff of the unrolled 27-point scatter compiles for ~50 s on these machines; this gather compiles in
+    seconds and needs no atomics (each particle owns its adjoint rows). With g_i = dL/dp_i, h_i = dL/dm_i and
+    c_ip = m v + A dpos_ip:  dL/dv = Σ w m g_i;  dL/dA = Σ w g_i dposᵀ;  dL/dm = Σ w (v·g_i + h_i);
+    dL/dx = inv_dx Σ [(g_i·c_ip + h_i m) ∇_fx w − w dx Aᵀ g_i]  (dpos = (i − fx) dx, fx = (x − lo)/dx − base).
+    Checked against Taichi's autodiff of :func:`p2g` and finite differences (tests/sim)."""
+    for p in range(n):
+        Xp = (x[p, s] - lo) * inv_dx
+        base = _base(Xp, grid_m.shape)
+        fx = Xp - ti.cast(base, float)
+        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+        dw = [fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5]
+        mass = density[p] * vol[p]
+        vp = v[p, s]
+        A = affine[p]
+        At = A.transpose()
+        g_fx = ti.Vector.zero(float, 3)
+        g_v = ti.Vector.zero(float, 3)
+        g_A = ti.Matrix.zero(float, 3, 3)
+        g_mass = 0.0
+        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            offset = ti.Vector([i, j, k])
+            dpos = (ti.cast(offset, float) - fx) / inv_dx
+            weight = w[i][0] * w[j][1] * w[k][2]
+            grad_w = ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
+                                w[i][0] * w[j][1] * dw[k][2]])  # fmt: skip
+            gp = grid_v_in.grad[base + offset]
+            gm = grid_m.grad[base + offset]
+            g_fx += (gp.dot(mass * vp + A @ dpos) + gm * mass) * grad_w - (weight / inv_dx) * (At @ gp)
+            g_v += (weight * mass) * gp
+            g_A += weight * gp.outer_product(dpos)
+            g_mass += weight * (vp.dot(gp) + gm)
+        x.grad[p, s] = x.grad[p, s] + inv_dx * g_fx
+        v.grad[p, s] = v.grad[p, s] + g_v
+        affine.grad[p] = affine.grad[p] + g_A
+        density.grad[p] = density.grad[p] + g_mass * vol[p]
 
 
 @ti.kernel

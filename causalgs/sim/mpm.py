@@ -13,11 +13,11 @@ every segment (a copy of x, v, C, F) and which slot every requested output time 
 segments from last to first: restore the segment's start, replay its substeps (the last segment's slots are still
 intact and are not replayed), seed the end slot with the adjoint carried from the later segment plus the loss
 gradients of outputs in this segment, then for each substep in reverse recompute its grid and run the gradient
-kernels g2p.grad → grid_update.grad → p2g.grad (as difftaichi's diffmpm does; the grid is scratch of one substep).
-Parameter adjoints (E, nu, density, effect parameters) accumulate across all segments because the gradient kernels
-only ever add to them; ``ti.ad.Tape`` is not used since it clears every adjoint when entered. Memory: one segment
-of slots plus one checkpoint per segment, instead of one slot per substep for a full tape (``segment`` ≥ all
-substeps is the full tape: a single segment, never replayed).
+kernels g2p.grad → grid_update.grad → p2g_adjoint → stress.grad (as difftaichi's diffmpm does; the grid is scratch
+of one substep). Parameter adjoints (E, nu, density, effect parameters) accumulate across all segments because the
+gradient kernels only ever add to them; ``ti.ad.Tape`` is not used since it clears every adjoint when entered.
+Memory: one segment of slots plus one checkpoint per segment, instead of one slot per substep for a full tape
+(``segment`` ≥ all substeps is the full tape: a single segment, never replayed).
 
 The time step follows the CFL condition dt ≤ cfl · dx / max(c, |v|max) with c = sqrt((λ + 2μ)/ρ) the fastest
 elastic (P-)wave, chosen per frame so the frame splits into equal substeps. Blow-ups (NaN, particles leaving the
@@ -26,6 +26,7 @@ grid) are detected after every frame and raised as one-line :class:`~causalgs.er
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field, fields
 
@@ -52,6 +53,9 @@ def segment_specs(segment: int) -> tuple[FieldSpec, ...]:
         FieldSpec("C_seg", (3, 3), per_row=k, doc="APIC affine matrix per substep slot"),
         FieldSpec("F_seg", (3, 3), per_row=k, fill="identity", doc="deformation gradient per substep slot"),
     )
+
+
+SCRATCH = (FieldSpec("mpm_affine", (3, 3), doc="MPM scratch: stress and APIC momentum term of the current substep"),)
 
 
 @dataclass
@@ -135,6 +139,7 @@ class Simulator:
                 f"this particle store holds simulator segments of at most {have.per_row[0] - 1} substeps, the "
                 f"config asks for segment = {self.k}: use a new store or a shorter segment"
             )
+        store.add_fields(SCRATCH)
         self.grid = grid_fields(self.geo.shape)
         self.effects = Effects.from_spec(self.config.effects)
         self.frame = 0
@@ -198,22 +203,27 @@ class Simulator:
     # -- time stepping --------------------------------------------------------------------------------------------
     def substep(self, s: int, dt: float) -> None:
         """One MLS-MPM substep from slot ``s`` to slot ``s + 1`` (0 ≤ s < segment). Low level: :meth:`step` keeps
-        the slot bookkeeping."""
+        the slot bookkeeping and uploads the effect parameters."""
         st, g, geo = self.store, self.grid, self.geo
         kernels.clear_grid(g.v_in, g.m, g.v_out)
         self._grid(s, dt)
         kernels.g2p(st.x_seg, st.v_seg, st.C_seg, g.v_out, s, st.n, dt, geo.lo, geo.inv_dx)
 
-    def _p2g_args(self, s: int, dt: float) -> tuple:
+    def _stress_args(self, s: int, dt: float) -> tuple:
+        st = self.store
+        return (st.v_seg, st.C_seg, st.F_seg, st.vol, st.density, st.E, st.nu, st.mpm_affine, s, st.n, dt,
+                self.geo.inv_dx, self.config.material, self.effects.kernel)  # fmt: skip
+
+    def _p2g_args(self, s: int) -> tuple:
         st, g, geo = self.store, self.grid, self.geo
-        return (*self._seg(), st.vol, st.density, st.E, st.nu, g.v_in, g.m, s, st.n, dt, geo.lo, geo.inv_dx,
-                self.config.material, self.effects)  # fmt: skip
+        return (st.x_seg, st.v_seg, st.vol, st.density, st.mpm_affine, g.v_in, g.m, s, st.n, geo.lo, geo.inv_dx)
 
     def _grid(self, s: int, dt: float) -> None:
-        """P2G and the grid update of substep ``s`` (the grid must be cleared)."""
+        """Stress, P2G and the grid update of substep ``s`` (the grid must be cleared)."""
         g, geo = self.grid, self.geo
-        kernels.p2g(*self._p2g_args(s, dt))
-        kernels.grid_update(g.v_in, g.m, g.v_out, dt, geo.lo, geo.dx, self.effects)
+        kernels.stress(*self._stress_args(s, dt))
+        kernels.p2g(*self._p2g_args(s))
+        kernels.grid_update(g.v_in, g.m, g.v_out, dt, geo.lo, geo.dx, self.effects.kernel)
 
     def _boundary(self) -> None:
         """Start a new segment if the live one is full: copy its last slot into slot 0 (and checkpoint it)."""
@@ -230,6 +240,7 @@ class Simulator:
         ``check(dt)``, if given, runs whenever a segment fills up (particles leaving the grid are caught before the
         clamped stencils turn them into NaN)."""
         dt = self.stable_dt() if dt is None else float(dt)
+        self.effects.upload()
         for _ in range(int(substeps)):
             self._boundary()
             self.substep(self.slot, dt)
@@ -336,7 +347,7 @@ class Simulator:
         times = [float(t) for t in times]
         if not times:
             raise CausalGSError("rollout needs at least one output time")
-        if not all(math.isfinite(t) for t in times) or times[0] < 0 or any(b < a for a, b in zip(times, times[1:])):
+        if not all(math.isfinite(t) for t in times) or times[0] < 0 or any(b < a for a, b in itertools.pairwise(times)):
             raise CausalGSError(f"output times must be finite, non-negative and sorted, got {times}")
         if self.time != 0.0 or self.slot != 0:
             raise CausalGSError("rollout starts from time 0: call set_state() or reset() first")
@@ -365,10 +376,11 @@ class Simulator:
 
         The store's materials and the effect parameters must be those of the rollout (the torch boundary restores
         them when other work ran in between)."""
-        st, g = self.store, self.grid
+        st = self.store
         n = st.n
         seg_names = [f"{k}_seg" for k in STATE]
         st.zero_grad([*seg_names, "E", "nu", "density"])
+        self.effects.upload()
         self.effects.zero_grad()
         seeds = {k: v for k, v in grads.items() if v is not None}
         for k, v in seeds.items():
@@ -413,9 +425,11 @@ class Simulator:
         kernels.clear_grid(g.v_in, g.m, g.v_out)
         self._grid(s, dt)
         kernels.clear_grid_grad(g.v_in, g.m, g.v_out)
+        st.zero_grad(["mpm_affine"])
         kernels.g2p.grad(st.x_seg, st.v_seg, st.C_seg, g.v_out, s, st.n, dt, geo.lo, geo.inv_dx)
-        kernels.grid_update.grad(g.v_in, g.m, g.v_out, dt, geo.lo, geo.dx, self.effects)
-        kernels.p2g.grad(*self._p2g_args(s, dt))
+        kernels.grid_update.grad(g.v_in, g.m, g.v_out, dt, geo.lo, geo.dx, self.effects.kernel)
+        kernels.p2g_adjoint(*self._p2g_args(s))
+        kernels.stress.grad(*self._stress_args(s, dt))
 
 
 def momenta(state: dict[str, torch.Tensor], mass: torch.Tensor, dx: float) -> tuple[torch.Tensor, torch.Tensor]:

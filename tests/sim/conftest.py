@@ -10,18 +10,21 @@ import pytest
 import torch
 
 DX = 1.0 / 16  # the tests' grid: res 16 on the unit box
+SLOTS = 16  # substeps per segment the test store can hold (any test may use a segment up to this)
 _stores: dict = {}
 
 
 def shared_store(n: int):
     """The runtime's test store, emptied and resized to ``n`` rows (rows take their fill values)."""
     from causalgs import _ti
+    from causalgs.sim.mpm import segment_specs
     from causalgs.store import ParticleStore
 
     key = _ti.generation()
     if key not in _stores:
         _stores.clear()
         _stores[key] = ParticleStore(0, sh_degree=0)
+        _stores[key].add_fields(segment_specs(SLOTS))
     store = _stores[key]
     store.resize(0)
     store.resize(n)

@@ -135,7 +135,7 @@ def test_backward_after_another_rollout(ti64, mk):
 
 
 def test_bad_inputs_are_one_line_errors(ti64, mk):
-    sim, inp, w = _scene(mk, segment=2)
+    sim, inp, _ = _scene(mk, segment=2)
     with pytest.raises(CausalGSError, match=r"x0 has shape \[3, 3\]"):
         simulate(sim, inp["x0"][:3], inp["v0"], inp["E"], inp["nu"], inp["density"], TIMES)
     with pytest.raises(CausalGSError, match="sorted"):
@@ -144,3 +144,26 @@ def test_bad_inputs_are_one_line_errors(ti64, mk):
         simulate(sim, inp["x0"], inp["v0"], inp["E"], inp["nu"], inp["density"], TIMES, torch.zeros(2, dtype=D))
     with pytest.raises(CausalGSError, match=r"material 'nu' has shape"):
         simulate(sim, inp["x0"], inp["v0"], inp["E"], inp["nu"][:5], inp["density"], TIMES)
+
+
+@pytest.mark.slow
+def test_hand_written_p2g_adjoint_equals_autodiff(ti64, mk):
+    """p2g_adjoint against Taichi's own autodiff of p2g (slow: p2g.grad compiles for about a minute)."""
+    from causalgs.sim import kernels
+
+    sim, inp, _ = _scene(mk, segment=2)
+    st, g = sim.store, sim.grid
+    n = st.n
+    gen = torch.Generator().manual_seed(3)
+    sim.set_state(inp["x0"] + 0.01 * torch.randn(n, 3, generator=gen, dtype=D), inp["v0"])
+    st.from_torch("mpm_affine", torch.randn(n, 3, 3, generator=gen, dtype=D))
+    kernels.clear_grid(g.v_in, g.m, g.v_out)
+    g.v_in.grad.from_torch(torch.randn(*g.v_in.shape, 3, generator=gen, dtype=D))
+    g.m.grad.from_torch(torch.randn(*g.m.shape, generator=gen, dtype=D))
+    out = []
+    for kernel in (kernels.p2g.grad, kernels.p2g_adjoint):
+        st.zero_grad(["x_seg", "v_seg", "mpm_affine", "density"])
+        kernel(*sim._p2g_args(0))
+        out.append([st.to_torch(k, grad=True) for k in ("x_seg", "v_seg", "mpm_affine", "density")])
+    for a, b, name in zip(*out, ("x", "v", "affine", "density"), strict=True):
+        assert torch.allclose(a, b, rtol=1e-12, atol=1e-12 * float(a.abs().max())), name
