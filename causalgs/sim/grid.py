@@ -52,7 +52,7 @@ class GridGeometry:
 
 class GridFields:
     """``v_in`` (momentum, then velocity numerator), ``m`` (mass), ``v_out`` (updated velocity), all with adjoints,
-    and ``stats`` (frame diagnostics)."""
+    ``box`` (the nodes the particles reach this substep) and ``stats`` (frame diagnostics)."""
 
     def __init__(self, shape: tuple[int, int, int]):
         real = _ti.real()
@@ -63,6 +63,8 @@ class GridFields:
         fb.dense(ti.ijk, shape).place(self.v_in, self.m, self.v_out)
         self.stats = ti.field(real)
         fb.dense(ti.i, N_STATS).place(self.stats)
+        self.box = ti.field(ti.i32)
+        fb.dense(ti.i, 6).place(self.box)
         fb.lazy_grad()
         self.tree = fb.finalize()
         self.shape = tuple(shape)

@@ -205,7 +205,6 @@ class Simulator:
         """One MLS-MPM substep from slot ``s`` to slot ``s + 1`` (0 ≤ s < segment). Low level: :meth:`step` keeps
         the slot bookkeeping and uploads the effect parameters."""
         st, g, geo = self.store, self.grid, self.geo
-        kernels.clear_grid(g.v_in, g.m, g.v_out)
         self._grid(s, dt)
         kernels.g2p(st.x_seg, st.v_seg, st.C_seg, g.v_out, s, st.n, dt, geo.lo, geo.inv_dx)
 
@@ -219,11 +218,13 @@ class Simulator:
         return (st.x_seg, st.v_seg, st.vol, st.density, st.mpm_affine, g.v_in, g.m, s, st.n, geo.lo, geo.inv_dx)
 
     def _grid(self, s: int, dt: float) -> None:
-        """Stress, P2G and the grid update of substep ``s`` (the grid must be cleared)."""
+        """The grid of substep ``s``: the particles' box, clear, stress, P2G, grid update."""
         g, geo = self.grid, self.geo
+        kernels.particle_box(self.store.x_seg, s, self.store.n, geo.lo, geo.inv_dx, geo.shape, g.box)
+        kernels.clear_grid(g.v_in, g.m, g.v_out, g.box)
         kernels.stress(*self._stress_args(s, dt))
         kernels.p2g(*self._p2g_args(s))
-        kernels.grid_update(g.v_in, g.m, g.v_out, dt, geo.lo, geo.dx, self.effects.kernel)
+        kernels.grid_update(g.v_in, g.m, g.v_out, dt, geo.lo, geo.dx, self.effects.kernel, g.box)
 
     def _boundary(self) -> None:
         """Start a new segment if the live one is full: copy its last slot into slot 0 (and checkpoint it)."""
@@ -422,12 +423,11 @@ class Simulator:
     def _substep_grad(self, s: int, dt: float) -> None:
         """Recompute the grid of substep ``s`` and run its gradient kernels in reverse order."""
         st, g, geo = self.store, self.grid, self.geo
-        kernels.clear_grid(g.v_in, g.m, g.v_out)
         self._grid(s, dt)
-        kernels.clear_grid_grad(g.v_in, g.m, g.v_out)
+        kernels.clear_grid_grad(g.v_in, g.m, g.v_out, g.box)
         st.zero_grad(["mpm_affine"])
         kernels.g2p.grad(st.x_seg, st.v_seg, st.C_seg, g.v_out, s, st.n, dt, geo.lo, geo.inv_dx)
-        kernels.grid_update.grad(g.v_in, g.m, g.v_out, dt, geo.lo, geo.dx, self.effects.kernel)
+        kernels.grid_update.grad(g.v_in, g.m, g.v_out, dt, geo.lo, geo.dx, self.effects.kernel, g.box)
         kernels.p2g_adjoint(*self._p2g_args(s))
         kernels.stress.grad(*self._stress_args(s, dt))
 

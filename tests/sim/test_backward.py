@@ -157,7 +157,7 @@ def test_hand_written_p2g_adjoint_equals_autodiff(ti64, mk):
     gen = torch.Generator().manual_seed(3)
     sim.set_state(inp["x0"] + 0.01 * torch.randn(n, 3, generator=gen, dtype=D), inp["v0"])
     st.from_torch("mpm_affine", torch.randn(n, 3, 3, generator=gen, dtype=D))
-    kernels.clear_grid(g.v_in, g.m, g.v_out)
+    kernels.particle_box(st.x_seg, 0, n, sim.geo.lo, sim.geo.inv_dx, sim.geo.shape, g.box)
     g.v_in.grad.from_torch(torch.randn(*g.v_in.shape, 3, generator=gen, dtype=D))
     g.m.grad.from_torch(torch.randn(*g.m.shape, generator=gen, dtype=D))
     out = []

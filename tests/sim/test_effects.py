@@ -56,7 +56,8 @@ def test_bad_set_and_get(ti64):
 
 
 def test_registry_contents():
-    assert {"gravity", "walls", "linear_drag"} <= set(REGISTRY)
+    assert {"gravity", "force", "linear_drag", "quadratic_drag", "ground", "ground_sticky", "walls", "damping",
+            "plasticity"} <= set(REGISTRY)  # fmt: skip
     assert all(d.doc for d in REGISTRY.values())
 
 
@@ -71,3 +72,23 @@ def test_config_refuses_unknown_keys_and_bad_values():
     assert cfg.geometry.dx == 2.0 / 16
     assert cfg.geometry.shape == (17, 9, 5)
     assert SimConfig.from_dict(cfg.to_dict()) == cfg
+
+
+def test_parameter_vector_round_trip_and_bounds(ti64):
+    eff = Effects.from_spec("ground:mu=0.3;gravity;walls;damping:eta=2")
+    names = eff.param_names()
+    assert names == ["gravity.g[0]", "gravity.g[1]", "gravity.g[2]", "ground.n[0]", "ground.n[1]", "ground.n[2]",
+                     "ground.d", "ground.mu", "damping.eta"]  # fmt: skip
+    flat = eff.flat()
+    np.testing.assert_array_equal(flat, [0, 0, -9.8, 0, 0, 1, 0, 0.3, 2])
+    eff.set_flat(flat * 2)
+    assert eff.get("ground", "mu")[0] == 0.6 and eff.get("damping", "eta")[0] == 4
+    with pytest.raises(CausalGSError, match=r"got 3 values, expected 9"):
+        eff.set_flat([1, 2, 3])
+    with pytest.raises(CausalGSError, match=r"parameter 'mu' = -0.1 must be >= 0"):
+        eff.set("ground", mu=-0.1)
+    with pytest.raises(CausalGSError, match=r"parameter 'c' = -1 must be >= 0"):
+        parse_spec("linear_drag:c=-1")
+    # Viscosity limits the explicit time step: dx² rho / (6 eta).
+    assert eff.dt_limit(0.1, 1000.0) == pytest.approx(0.01 * 1000 / (6 * 4))
+    assert Effects.from_spec("gravity").dt_limit(0.1, 1000.0) == float("inf")
