@@ -146,6 +146,13 @@ def _set_torch_threads() -> None:
     torch.set_num_threads(_env_threads(THREADS_ENV, 1))
 
 
+def serial_scatter() -> bool:
+    """Whether particle loops that scatter with atomics run serially: on the CPU backend (measured here, 8k
+    particles: P2G 2.2 ms with parallel atomics, 0.42 ms serial, where Taichi demotes the atomics; the gathers run as
+    fast serially), never on a GPU."""
+    return not runtime().on_gpu
+
+
 def runtime() -> Runtime:
     """The current :class:`Runtime`; raises if :func:`init` has not been called."""
     if _runtime is None:

@@ -9,9 +9,15 @@ slot ``s + 1``, so no kernel reads a field and then overwrites it (Taichi's glob
 
 ``stress`` (per particle: deformation update, plasticity, stress) is separate from ``p2g`` (the stencil scatter):
 two small kernels compile much faster than one large one, most of all their gradient kernels, and the scatter does
-not depend on the material model or the effects. The backward of a substep recomputes its grid, zeroes the grid and
-``affine`` adjoints and runs the gradient kernels in reverse: g2p.grad, grid_update.grad, p2g_adjoint (written by
-hand: Taichi's autodiff of the scatter is the slowest kernel to compile), stress.grad (see :mod:`causalgs.sim.mpm`).
+not depend on the material model or the effects.
+
+Particle loops run serially on the CPU (:func:`causalgs._ti.serial_scatter`): with the two cores here, contended
+float atomics cost far more than the parallelism gives.
+
+The backward of a substep recomputes its grid, zeroes the grid and ``affine`` adjoints and runs the gradient kernels
+in reverse: g2p_adjoint, grid_update.grad, p2g_adjoint, stress.grad (see :mod:`causalgs.sim.mpm`). The transfers'
+adjoints are written by hand (Taichi's autodiff of the unrolled stencils was the slowest code to compile, ~50 s and
+~20 s); the material, plasticity and effects, where the maths changes with every model, use Taichi's autodiff.
 
 Kernels loop over ``range(n)`` with the count a runtime argument, so they compile once per store capacity. Stencil
 base indices are clamped into the grid: a particle that leaves it (or turns NaN) cannot write out of bounds; the
@@ -19,6 +25,7 @@ frame check in :mod:`causalgs.sim.mpm` reports it instead.
 """
 
 # No `from __future__ import annotations`: Taichi 1.7 reads kernel annotations as live objects.
+from causalgs import _ti
 from causalgs._ti import ti
 from causalgs.sim.materials import kirchhoff, lame_ti
 
@@ -49,6 +56,7 @@ def particle_box(x: ti.template(), s: ti.i32, n: ti.i32, lo: ti.math.vec3, inv_d
         for d in ti.static(range(3)):
             box[d] = shape[d]
             box[d + 3] = 0
+    ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
         b = _base((x[p, s] - lo) * inv_dx, shape)
         for d in ti.static(range(3)):
@@ -100,6 +108,7 @@ def p2g(
 ):
     """Scatter mass and affine momentum m v + A (x_i − x_p) to the 3×3×3 stencil (independent of the material and
     the effects, so it compiles once)."""
+    ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
         Xp = (x[p, s] - lo) * inv_dx
         base = _base(Xp, grid_m.shape)
@@ -137,6 +146,7 @@ def p2g_adjoint(
     c_ip = m v + A dpos_ip:  dL/dv = Σ w m g_i;  dL/dA = Σ w g_i dposᵀ;  dL/dm = Σ w (v·g_i + h_i);
     dL/dx = inv_dx Σ [(g_i·c_ip + h_i m) ∇_fx w − w dx Aᵀ g_i]  (dpos = (i − fx) dx, fx = (x − lo)/dx − base).
     Checked against Taichi's autodiff of :func:`p2g` and finite differences (tests/sim)."""
+    ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
         Xp = (x[p, s] - lo) * inv_dx
         base = _base(Xp, grid_m.shape)
@@ -205,6 +215,7 @@ def g2p(
     inv_dx: float,
 ):
     """Gather v and the APIC matrix C = 4/dx² Σ w v_i (x_i − x_p)ᵀ into slot s+1; advect x with the new v."""
+    ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
         Xp = (x[p, s] - lo) * inv_dx
         base = _base(Xp, grid_v_out.shape)
@@ -222,6 +233,49 @@ def g2p(
         v[p, s + 1] = new_v
         C[p, s + 1] = new_C
         x[p, s + 1] = x[p, s] + dt * new_v
+
+
+@ti.kernel
+def g2p_adjoint(
+    x: ti.template(),
+    v: ti.template(),
+    C: ti.template(),
+    grid_v_out: ti.template(),
+    s: ti.i32,
+    n: ti.i32,
+    dt: float,
+    lo: ti.math.vec3,
+    inv_dx: float,
+):
+    """The adjoint of :func:`g2p`, written out: scatter the adjoints of x, v, C at slot s+1 into the grid velocity
+    adjoint and x at slot s (Taichi's autodiff of g2p compiles for ~20 s and runs ~2× slower).
+
+    With a = dL/dv' + dt dL/dx' and G = dL/dC', per stencil node (dpos = i − fx in cells, c = 4 inv_dx):
+    dL/dv_i += w a + c w G dpos;  dL/dw = v_i·a + c v_iᵀ G dpos;  dL/dfx += dL/dw ∇w − c w Gᵀ v_i;
+    dL/dx += dL/dx' + inv_dx dL/dfx. Checked against Taichi's autodiff of :func:`g2p` and finite differences."""
+    ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
+    for p in range(n):
+        Xp = (x[p, s] - lo) * inv_dx
+        base = _base(Xp, grid_v_out.shape)
+        fx = Xp - ti.cast(base, float)
+        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+        dw = [fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5]
+        gx = x.grad[p, s + 1]
+        a = v.grad[p, s + 1] + dt * gx
+        G = C.grad[p, s + 1]
+        c = 4.0 * inv_dx
+        g_fx = ti.Vector.zero(float, 3)
+        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+            offset = ti.Vector([i, j, k])
+            dpos = ti.cast(offset, float) - fx
+            weight = w[i][0] * w[j][1] * w[k][2]
+            grad_w = ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
+                                w[i][0] * w[j][1] * dw[k][2]])  # fmt: skip
+            g_v = grid_v_out[base + offset]
+            Gd = G @ dpos
+            grid_v_out.grad[base + offset] += weight * (a + c * Gd)
+            g_fx += (g_v.dot(a) + c * g_v.dot(Gd)) * grad_w - (c * weight) * (G.transpose() @ g_v)
+        x.grad[p, s] = x.grad[p, s] + gx + inv_dx * g_fx
 
 
 @ti.kernel

@@ -13,7 +13,7 @@ every segment (a copy of x, v, C, F) and which slot every requested output time 
 segments from last to first: restore the segment's start, replay its substeps (the last segment's slots are still
 intact and are not replayed), seed the end slot with the adjoint carried from the later segment plus the loss
 gradients of outputs in this segment, then for each substep in reverse recompute its grid and run the gradient
-kernels g2p.grad → grid_update.grad → p2g_adjoint → stress.grad (as difftaichi's diffmpm does; the grid is scratch
+kernels g2p_adjoint → grid_update.grad → p2g_adjoint → stress.grad (as difftaichi's diffmpm does; the grid is scratch
 of one substep). Parameter adjoints (E, nu, density, effect parameters) accumulate across all segments because the
 gradient kernels only ever add to them; ``ti.ad.Tape`` is not used since it clears every adjoint when entered.
 Memory: one segment of slots plus one checkpoint per segment, instead of one slot per substep for a full tape
@@ -426,7 +426,7 @@ class Simulator:
         self._grid(s, dt)
         kernels.clear_grid_grad(g.v_in, g.m, g.v_out, g.box)
         st.zero_grad(["mpm_affine"])
-        kernels.g2p.grad(st.x_seg, st.v_seg, st.C_seg, g.v_out, s, st.n, dt, geo.lo, geo.inv_dx)
+        kernels.g2p_adjoint(st.x_seg, st.v_seg, st.C_seg, g.v_out, s, st.n, dt, geo.lo, geo.inv_dx)
         kernels.grid_update.grad(g.v_in, g.m, g.v_out, dt, geo.lo, geo.dx, self.effects.kernel, g.box)
         kernels.p2g_adjoint(*self._p2g_args(s))
         kernels.stress.grad(*self._stress_args(s, dt))

@@ -167,3 +167,29 @@ def test_hand_written_p2g_adjoint_equals_autodiff(ti64, mk):
         out.append([st.to_torch(k, grad=True) for k in ("x_seg", "v_seg", "mpm_affine", "density")])
     for a, b, name in zip(*out, ("x", "v", "affine", "density"), strict=True):
         assert torch.allclose(a, b, rtol=1e-12, atol=1e-12 * float(a.abs().max())), name
+
+
+@pytest.mark.slow
+def test_hand_written_g2p_adjoint_equals_autodiff(ti64, mk):
+    """g2p_adjoint against Taichi's own autodiff of g2p (slow: g2p.grad compiles for tens of seconds)."""
+    from causalgs.sim import kernels
+
+    sim, inp, _ = _scene(mk, segment=2)
+    st, g, geo = sim.store, sim.grid, sim.geo
+    n = st.n
+    gen = torch.Generator().manual_seed(4)
+    sim.set_state(inp["x0"] + 0.01 * torch.randn(n, 3, generator=gen, dtype=D), inp["v0"])
+    kernels.particle_box(st.x_seg, 0, n, geo.lo, geo.inv_dx, geo.shape, g.box)
+    g.v_out.from_torch(torch.randn(*g.v_out.shape, 3, generator=gen, dtype=D))
+    seeds = {"x_seg": (3,), "v_seg": (3,), "C_seg": (3, 3)}
+    out = []
+    for kernel in (kernels.g2p.grad, kernels.g2p_adjoint):
+        st.zero_grad(list(seeds))
+        g.v_out.grad.fill(0)
+        for k, shape in seeds.items():
+            st.from_torch(k, torch.randn(n, *shape, generator=torch.Generator().manual_seed(9), dtype=D), grad=True,
+                          slot=1)  # fmt: skip
+        kernel(st.x_seg, st.v_seg, st.C_seg, g.v_out, 0, n, 1e-3, geo.lo, geo.inv_dx)
+        out.append([st.to_torch("x_seg", grad=True, slot=0), g.v_out.grad.to_torch()])
+    for a, b, name in zip(*out, ("x", "grid v_out"), strict=True):
+        assert torch.allclose(a, b, rtol=1e-12, atol=1e-12 * float(a.abs().max())), name
