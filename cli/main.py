@@ -54,7 +54,7 @@ def cli():
 # Built commands
 # ---------------------------------------------------------------------------------------------------------------------
 @cli.command()
-@click.argument("name", type=click.Choice(["spin"]))
+@click.argument("name", type=click.Choice(["spin", "jelly"]))
 @out_option()
 @click.option("--views", type=click.IntRange(2, 200), default=20, show_default=True, help="Cameras on the ring.")
 @click.option("--frames", type=click.IntRange(2, 1000), default=89, show_default=True, help="Frames in time.")
@@ -66,20 +66,38 @@ def cli():
     help="Background colour as 'r,g,b' in [0, 1]; images are RGBA and the reader composites them on it.",
 )
 @seed_option
+@click.option(
+    "--effects",
+    default=None,
+    help="Simulated scenes only: the external effects of the true motion, replacing the scene's default, as a spec "
+    "of the simulator's effects, e.g. 'gravity;ground:mu=0.4;linear_drag:c=0.3;walls' (effects: gravity, force, "
+    "linear_drag, quadratic_drag, ground, ground_sticky, walls, damping, plasticity).",
+)
 @click.option("--force", is_flag=True, help="Overwrite an existing dataset in --out.")
-def synth(name, out, views, frames, resolution, background, seed, force):
+def synth(name, out, views, frames, resolution, background, seed, effects, force):
     """Write the built-in scene NAME as a dataset in --out.
 
     The layout is the D-NeRF / NVFi one (transforms_{train,val,test}.json, RGBA PNGs, points3d.ply) plus gt/ with
-    per-view per-frame object-id masks and the true motion. Images come from analytic ray casting, never from the
-    model's rasterizer. train = the first 3/4 of the frames from all but the held-out views; val = the same frames
-    from the held-out views (interpolation); test = the remaining future frames from every view (extrapolation).
+    per-view per-frame object-id masks and the true motion. spin: rigid, analytic motion, ray-cast images. jelly: a
+    soft cube dropped on the ground, simulated by the project's MPM on a fine reference grid, rendered from its
+    embedded surface mesh by a z-buffer rasterizer. Never the model's rasterizer.
+
+    train = the first 3/4 of the frames from all but the held-out views; val = the same frames from the held-out
+    views (interpolation); test = the remaining future frames from every view (extrapolation).
     """
     from causalgs.synth import generate
 
     bg = parse_rgb(background, "--background")
     summary = generate(
-        name, out, views=views, frames=frames, resolution=resolution, background=bg, seed=seed, overwrite=force
+        name,
+        out,
+        views=views,
+        frames=frames,
+        resolution=resolution,
+        background=bg,
+        seed=seed,
+        overwrite=force,
+        effects=effects,
     )
     click.echo(summary)
 

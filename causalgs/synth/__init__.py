@@ -3,7 +3,9 @@
 Each scene is a builder ``build(views=, frames=, resolution=, seed=) -> SynthScene`` registered in :data:`SCENES`;
 :func:`generate` validates the options, builds the scene and hands it to the one shared writer
 (:mod:`causalgs.synth.writer`), so every scene has the same layout, split protocol and gt/ folder. Images come from
-analytic ray casting (:mod:`causalgs.synth.raycast`), never from the model's rasterizer.
+analytic ray casting (:mod:`causalgs.synth.raycast`) for rigid scenes, and from surface meshes carried by the
+project's MPM at a reference resolution for deformable ones (:mod:`causalgs.synth.physics`, rendered by the z-buffer
+rasterizer of :mod:`causalgs.synth.mesh`): never from the model's Gaussian rasterizer.
 """
 
 from __future__ import annotations
@@ -14,14 +16,17 @@ from collections.abc import Callable
 from pathlib import Path
 
 from causalgs.errors import CausalGSError
-from causalgs.synth import spin
-from causalgs.synth.writer import SynthScene, protocol, write_dataset
+from causalgs.synth import physics, spin
+from causalgs.synth.writer import SynthScene, check_out, protocol, write_dataset
 
 __all__ = ["SCENES", "generate", "protocol"]
 
 SCENES: dict[str, Callable[..., SynthScene]] = {
     "spin": spin.build,
+    "jelly": physics.jelly,
 }
+# Scenes simulated by the MPM: they take an effects spec (any terms of the simulator's registry) and show progress.
+SIMULATED = {"jelly"}
 
 
 def _check_options(name, views, frames, resolution, background) -> tuple[float, float, float]:
@@ -50,19 +55,41 @@ def generate(
     seed: int = 0,
     overwrite: bool = False,
     progress: bool = True,
+    effects: str | None = None,
 ) -> str:
     """Write the built-in scene ``name`` into ``out`` and return a short human summary.
 
-    The result depends only on the arguments (same seed, same bytes). Raises :class:`CausalGSError` with one line
-    for bad options or when ``out`` already holds files and ``overwrite`` is false.
+    ``effects`` (simulated scenes only) replaces the scene's default effects spec, e.g.
+    ``"gravity;ground:mu=0.4;linear_drag:c=0.3;walls"``. The result depends only on the arguments (same seed, same
+    bytes). Raises :class:`CausalGSError` with one line for bad options or when ``out`` already holds files and
+    ``overwrite`` is false.
     """
     start = time.perf_counter()
     bg = _check_options(name, views, frames, resolution, background)
     out = Path(out)
-    scene = SCENES[name](views=views, frames=frames, resolution=resolution, seed=seed)
+    check_out(out, overwrite)  # before minutes of simulation
+    if name in SIMULATED:
+        if effects is not None:
+            from causalgs.sim.effects import parse_spec
+
+            parse_spec(effects)  # one-line error for a bad spec before anything runs
+        scene = SCENES[name](views=views, frames=frames, resolution=resolution, seed=seed, effects=effects,
+                             progress=progress)  # fmt: skip
+    elif effects is not None:
+        raise CausalGSError(f"scene '{name}' has analytic motion and takes no --effects (simulated: "
+                            f"{', '.join(sorted(SIMULATED))})")  # fmt: skip
+    else:
+        scene = SCENES[name](views=views, frames=frames, resolution=resolution, seed=seed)
     options = {
         "seed": seed,
-        "options": {"views": views, "frames": frames, "resolution": resolution, "background": list(bg), "seed": seed},
+        "options": {
+            "views": views,
+            "frames": frames,
+            "resolution": resolution,
+            "background": list(bg),
+            "seed": seed,
+            "effects": effects,
+        },
     }
     counts = write_dataset(out, scene, background=bg, overwrite=overwrite, progress=progress, options=options)
     elapsed = time.perf_counter() - start

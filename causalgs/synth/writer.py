@@ -187,7 +187,7 @@ def write_dataset(
         "fps": float(scene.fps),
         "protocol": proto.to_json(),
         **scene.meta,
-        "renderer": "analytic ray casting",
+        "renderer": scene.meta.get("renderer", "analytic ray casting"),
     }
     write_json(out / "gt" / "meta.json", meta)
     _remove_stale(out, written)

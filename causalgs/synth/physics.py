@@ -1,0 +1,317 @@
+"""Scenes whose true motion comes from the project's MPM at a reference resolution, rendered from embedded meshes.
+
+A scene is a set of :class:`Body` objects (a box or a ball of particles on a lattice, with material, initial linear
+and angular velocity, colour) and an effects spec (any terms of :data:`causalgs.sim.effects.REGISTRY`, so a scene
+can carry an effect the model does not know of). The builder:
+
+1. samples each body's particles at spacing dx/2 (8 per cell) on a grid finer than the model's (``REFERENCE_RES``),
+2. simulates all frames with the project's MPM (CFL substeps, float32),
+3. carries each body's surface mesh with its particles (:class:`~causalgs.synth.mesh.Embedding`) and renders it,
+   with a static checkered floor on the ground plane, by the z-buffer mesh rasterizer — never the model's Gaussian
+   rasterizer,
+4. records the true particle and vertex trajectories, per-object materials and every effect with its parameters.
+"""
+
+from __future__ import annotations
+
+import colorsys
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from causalgs import _ti
+from causalgs.cameras import Camera, look_at
+from causalgs.errors import CausalGSError
+from causalgs.progress import progress_bar
+from causalgs.synth.mesh import AMBIENT, LIGHT, SUPERSAMPLE, Embedding, Mesh, box_mesh, render_meshes, sphere_mesh
+from causalgs.synth.writer import SynthScene
+
+FPS = 24.0
+FOV = 0.6911112070083618  # camera_angle_x of the D-NeRF / NVFi Blender scenes
+ELEVATIONS_DEG = (18.0, 38.0)
+REFERENCE_RES = 64  # grid cells along the longest side of the simulation box (the model uses coarser grids)
+FLOOR_ID = 1
+
+
+@dataclass
+class Body:
+    """A simulated object. ``shape``: "box" (``size`` = half extents) or "ball" (``size[0]`` = radius)."""
+
+    name: str
+    shape: str
+    center: tuple[float, float, float]
+    size: tuple[float, ...]
+    E: float
+    nu: float
+    density: float
+    color: tuple[float, float, float]
+    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    omega: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    checker: float = 0.06
+
+    def inside(self, X: np.ndarray) -> np.ndarray:
+        c = np.asarray(self.center)
+        if self.shape == "box":
+            return np.all(np.abs(X - c) <= np.asarray(self.size), axis=1)
+        if self.shape == "ball":
+            return np.linalg.norm(X - c, axis=1) <= self.size[0]
+        raise CausalGSError(f"unknown body shape '{self.shape}'")
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        c = np.asarray(self.center, dtype=np.float64)
+        h = np.asarray(self.size if self.shape == "box" else (self.size[0],) * 3, dtype=np.float64)
+        return c - h, c + h
+
+    def surface(self, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+        """The rest surface mesh: the shape's boundary, which the particles' cells fill."""
+        lo, hi = self.bounds()
+        if self.shape == "box":
+            cells = max(2, round(float((hi - lo).max()) / spacing / 2))
+            return box_mesh(lo, hi, cells)
+        return sphere_mesh(self.center, self.size[0], subdivisions=3)
+
+
+@dataclass
+class PhysicsSetup:
+    """Everything that defines a physics scene."""
+
+    name: str
+    bodies: list[Body]
+    effects: str
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+    floor_half: float = 0.6  # the rendered floor square (m) on the ground plane, if a ground effect is active
+    meta: dict = field(default_factory=dict)
+
+
+def palette(rng: np.random.Generator, n: int) -> list[tuple[float, float, float]]:
+    h0 = rng.uniform()
+    return [colorsys.hsv_to_rgb((h0 + i / n) % 1.0, rng.uniform(0.55, 0.8), rng.uniform(0.75, 0.95)) for i in range(n)]
+
+
+def _sample(bodies: list[Body], spacing: float):
+    """Lattice particles of every body (cell centres of a grid of ``spacing``), with body indices."""
+    xs, owner = [], []
+    for i, b in enumerate(bodies):
+        lo, hi = b.bounds()
+        axes = [np.arange(lo[d] + spacing / 2, hi[d], spacing) for d in range(3)]
+        X = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        X = X[b.inside(X)]
+        if len(X) == 0:
+            raise CausalGSError(f"body '{b.name}' is smaller than the particle spacing {spacing:g} m")
+        xs.append(X)
+        owner.append(np.full(len(X), i))
+    return np.concatenate(xs), np.concatenate(owner), spacing**3
+
+
+def _floor(effects, half: float) -> Mesh | None:
+    """A checkered square on the ground plane of a ``ground`` / ``ground_sticky`` term whose normal is +z."""
+    for name in ("ground", "ground_sticky"):
+        if name in effects.names():
+            n = effects.get(name, "n")
+            n = n / np.linalg.norm(n)
+            if abs(n[2]) < 0.999:
+                return None  # a tilted plane is not drawn
+            d = float(effects.get(name, "d")[0]) / n[2]
+            X, T = box_mesh((-half, -half, d - 0.02), (half, half, d), 8)
+            top = np.all(np.isclose(X[T][:, :, 2], d), axis=1)  # only the top face
+            return Mesh(X, T[top], FLOOR_ID, (0.8, 0.8, 0.78), checker=0.1, dark=0.7)
+    return None
+
+
+def simulate(setup: PhysicsSetup, frames: int, fps: float, progress: bool = True) -> dict:
+    """Run the reference MPM; returns rest particles, owners, per-frame positions and F (float32), and the effects."""
+    from causalgs.sim import SimConfig, Simulator
+    from causalgs.store import ParticleStore
+
+    _ti.init("cpu", "float32", quiet=True)
+    cfg = SimConfig(res=REFERENCE_RES, lo=setup.lo, hi=setup.hi, effects=setup.effects, max_substeps=4000)
+    spacing = cfg.geometry.dx / 2
+    X, owner, vol = _sample(setup.bodies, spacing)
+    n = len(X)
+    store = ParticleStore(n, sh_degree=0)
+    store.resize(n)
+    mat = {
+        k: np.array([getattr(setup.bodies[o], k) for o in range(len(setup.bodies))])[owner]
+        for k in ("E", "nu", "density")
+    }
+    for k, a in mat.items():
+        store.from_torch(k, torch.from_numpy(a))
+    store.from_torch("vol", torch.full((n,), vol))
+    store.from_torch("mass", torch.from_numpy(mat["density"] * vol))
+    v0 = np.zeros((n, 3))
+    for i, b in enumerate(setup.bodies):
+        sel = owner == i
+        v0[sel] = np.asarray(b.velocity) + np.cross(np.asarray(b.omega), X[sel] - np.asarray(b.center))
+    sim = Simulator(store, cfg)
+    sim.set_state(torch.from_numpy(X), torch.from_numpy(v0))
+    xs = np.zeros((frames, n, 3), dtype=np.float32)
+    Fs = np.zeros((frames, n, 3, 3), dtype=np.float32)
+    xs[0], Fs[0] = X, np.eye(3)
+    with progress_bar(progress) as bar:
+        task = bar.add_task(f"simulating {setup.name} ({n} particles, {REFERENCE_RES}³ grid)", total=frames - 1)
+        for k in range(1, frames):
+            st = sim.advance(1, fps)
+            xs[k], Fs[k] = st["x"].numpy(), st["F"].numpy()
+            bar.advance(task)
+    substeps = [m for m, _ in sim.schedule]
+    return {
+        "X": X,
+        "owner": owner,
+        "x": xs,
+        "F": Fs,
+        "effects": sim.effects,
+        "spacing": spacing,
+        "substeps": substeps,
+        "config": cfg,
+    }
+
+
+def _fit_distance(points: np.ndarray, views: int, target: np.ndarray, fill: float = 0.9) -> float:
+    """The smallest ring radius at which every camera sees all ``points`` inside ``fill`` of its image."""
+    tan_a = fill * math.tan(FOV / 2.0)
+
+    def fits(dist: float) -> bool:
+        for i in range(views):
+            c2w = look_at(target + dist * _eye(i, views), target)
+            rel = points - c2w[:3, 3]
+            x, y, z = rel @ c2w[:3, 0], rel @ c2w[:3, 1], -(rel @ c2w[:3, 2])
+            if np.any(z <= 0) or np.any(np.maximum(np.abs(x), np.abs(y)) > z * tan_a):
+                return False
+        return True
+
+    lo, hi = 0.1, 1.0
+    while not fits(hi):
+        lo, hi = hi, 2.0 * hi
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if fits(mid) else (mid, hi)
+    return hi
+
+
+def _eye(i: int, views: int) -> np.ndarray:
+    az = 2.0 * math.pi * i / views
+    el = math.radians(ELEVATIONS_DEG[i % len(ELEVATIONS_DEG)])
+    return np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+
+
+def build_scene(
+    setup: PhysicsSetup, *, views: int, frames: int, resolution: int, seed: int, progress: bool = True
+) -> SynthScene:
+    """Simulate ``setup`` and package it for the writer (cameras, renderer, initial points, gt motion, meta)."""
+    run = simulate(setup, frames, FPS, progress)
+    X, owner, spacing = run["X"], run["owner"], run["spacing"]
+    meshes, embeds = [], []
+    for i, b in enumerate(setup.bodies):
+        V, T = b.surface(spacing)
+        meshes.append(Mesh(V, T, i + 2, b.color, checker=b.checker))
+        sel = np.nonzero(owner == i)[0]
+        embeds.append((sel, Embedding(V, X[sel])))
+    verts = [np.stack([emb(run["x"][k][sel], run["F"][k][sel]) for k in range(frames)]) for sel, emb in embeds]
+    floor = _floor(run["effects"], setup.floor_half)
+    # Cameras look at the centre of the bodies' path, from the closest ring that keeps them in every frame.
+    allv = np.concatenate([v.reshape(-1, 3) for v in verts])
+    target = 0.5 * (allv.min(0) + allv.max(0))
+    dist = _fit_distance(allv[:: max(1, len(allv) // 20000)], views, target)
+    cameras = [
+        Camera.from_blender(look_at(target + dist * _eye(i, views), target), resolution, resolution, fov_x=FOV)
+        for i in range(views)
+    ]
+
+    def render(k: int):
+        ms = ([floor] if floor is not None else []) + meshes
+        pos = ([floor.X] if floor is not None else []) + [v[k] for v in verts]
+        for cam in cameras:
+            yield render_meshes(cam, ms, pos)
+
+    # Initial points: the t = 0 surface samples (mesh vertices) with their rendered albedo-ish colour.
+    pts = np.concatenate([v[0] for v in verts])
+    cols = np.concatenate([np.tile(np.asarray(m.color), (len(m.X), 1)) for m in meshes])
+    eff = run["effects"]
+    objects = [{"id": FLOOR_ID, "name": "floor", "kind": "static"}] if floor is not None else []
+    for i, b in enumerate(setup.bodies):
+        objects.append(
+            {
+                "id": i + 2,
+                "name": b.name,
+                "kind": "elastic",
+                "shape": b.shape,
+                "size": list(b.size),
+                "center": list(b.center),
+                "E": b.E,
+                "nu": b.nu,
+                "density": b.density,
+                "velocity": list(b.velocity),
+                "omega": list(b.omega),
+                "color": list(b.color),
+                "particles": int((owner == i).sum()),
+            }
+        )
+    motion = {
+        "particles_rest": X.astype(np.float32),
+        "particle_object": (owner + 2).astype(np.uint8),
+        "particles": run["x"],
+        "F": run["F"],
+        **{f"vertices_{i + 2}": v.astype(np.float32) for i, v in enumerate(verts)},
+        **{f"triangles_{i + 2}": m.triangles for i, m in enumerate(meshes)},
+        "seconds": (np.arange(frames) / FPS).astype(np.float64),
+    }
+    cfg = run["config"]
+    meta = {
+        "motion": {
+            "law": "MLS-MPM (causalgs.sim) at the reference resolution, float32",
+            "effects": {t: {k: v.tolist() for k, v in eff.values(t).items()} for t in eff.names()},
+            "effects_spec": eff.spec(),
+            "material_model": cfg.material,
+            "grid": {"res": cfg.res, "lo": list(cfg.lo), "hi": list(cfg.hi), "dx": cfg.geometry.dx},
+            "particle_spacing": spacing,
+            "substeps_per_frame": run["substeps"],
+        },
+        "objects": objects,
+        "cameras": {
+            "distance": dist,
+            "target": target.tolist(),
+            "elevations_deg": list(ELEVATIONS_DEG),
+            "up": [0.0, 0.0, 1.0],
+        },
+        "appearance": {
+            "texture": "object colour x 3D checker in rest coordinates",
+            "light_direction": LIGHT.tolist(),
+            "ambient": AMBIENT,
+            "shading": "two-sided lambertian, flat",
+        },
+        "supersampling": SUPERSAMPLE,
+        "masks": "object ids at pixel centres (0 none, 1 floor, 2.. bodies)",
+        "renderer": "z-buffer triangle rasterizer of embedded surface meshes (causalgs.synth.mesh)",
+        **setup.meta,
+    }
+    return SynthScene(setup.name, cameras, FPS, frames, render, pts, cols, motion, meta)
+
+
+# -- the scenes ----------------------------------------------------------------------------------------------------
+
+
+def jelly(
+    *, views: int, frames: int, resolution: int, seed: int, effects: str | None = None, progress: bool = True
+) -> SynthScene:
+    """A soft elastic cube dropped on the ground: it lands, wobbles and slides (non-rigid)."""
+    rng = np.random.default_rng(seed)
+    (color,) = palette(rng, 1)
+    half = 0.12
+    body = Body(
+        "jelly",
+        "box",
+        (rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), 0.32),
+        (half, half, half),
+        E=rng.uniform(1.5e4, 2.5e4),
+        nu=0.3,
+        density=1.0e3,
+        color=color,
+        velocity=(rng.uniform(0.2, 0.4) * rng.choice([-1, 1]), rng.uniform(-0.2, 0.2), 0.0),
+        omega=tuple(rng.uniform(-1.5, 1.5, size=3)),
+        checker=0.06,
+    )
+    setup = PhysicsSetup("jelly", [body], effects or "gravity;ground:mu=0.4;walls", (-0.6, -0.6, -0.1), (0.6, 0.6, 1.1))
+    return build_scene(setup, views=views, frames=frames, resolution=resolution, seed=seed, progress=progress)
