@@ -83,6 +83,7 @@ class PhysicsSetup:
     lo: tuple[float, float, float]
     hi: tuple[float, float, float]
     floor_half: float = 0.6  # the rendered floor square (m) on the ground plane, if a ground effect is active
+    res: int = REFERENCE_RES  # grid cells along the longest side of the box [lo, hi]
     meta: dict = field(default_factory=dict)
 
 
@@ -126,8 +127,8 @@ def simulate(setup: PhysicsSetup, frames: int, fps: float, progress: bool = True
     from causalgs.sim import SimConfig, Simulator
     from causalgs.store import ParticleStore
 
-    _ti.init("cpu", "float32", quiet=True)
-    cfg = SimConfig(res=REFERENCE_RES, lo=setup.lo, hi=setup.hi, effects=setup.effects, max_substeps=4000)
+    _ti.init("cpu", "float32", quiet=True)  # the data's precision is fixed, so the same seed gives the same bytes
+    cfg = SimConfig(res=setup.res, lo=setup.lo, hi=setup.hi, effects=setup.effects, max_substeps=4000)
     spacing = cfg.geometry.dx / 2
     X, owner, vol = _sample(setup.bodies, spacing)
     n = len(X)
@@ -151,7 +152,7 @@ def simulate(setup: PhysicsSetup, frames: int, fps: float, progress: bool = True
     Fs = np.zeros((frames, n, 3, 3), dtype=np.float32)
     xs[0], Fs[0] = X, np.eye(3)
     with progress_bar(progress) as bar:
-        task = bar.add_task(f"simulating {setup.name} ({n} particles, {REFERENCE_RES}³ grid)", total=frames - 1)
+        task = bar.add_task(f"simulating {setup.name} ({n} particles, {setup.res}³ grid)", total=frames - 1)
         for k in range(1, frames):
             st = sim.advance(1, fps)
             xs[k], Fs[k] = st["x"].numpy(), st["F"].numpy()
@@ -294,7 +295,14 @@ def build_scene(
 
 
 def jelly(
-    *, views: int, frames: int, resolution: int, seed: int, effects: str | None = None, progress: bool = True
+    *,
+    views: int,
+    frames: int,
+    resolution: int,
+    seed: int,
+    effects: str | None = None,
+    progress: bool = True,
+    reference_res: int = REFERENCE_RES,
 ) -> SynthScene:
     """A soft elastic cube dropped on the ground: it lands, wobbles and slides (non-rigid)."""
     rng = np.random.default_rng(seed)
@@ -306,12 +314,13 @@ def jelly(
         (rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), 0.32),
         (half, half, half),
         E=rng.uniform(1.5e4, 2.5e4),
-        nu=0.3,
+        nu=0.45,  # gelatin is nearly incompressible
         density=1.0e3,
         color=color,
         velocity=(rng.uniform(0.2, 0.4) * rng.choice([-1, 1]), rng.uniform(-0.2, 0.2), 0.0),
         omega=tuple(rng.uniform(-1.5, 1.5, size=3)),
         checker=0.06,
     )
-    setup = PhysicsSetup("jelly", [body], effects or "gravity;ground:mu=0.4;walls", (-0.6, -0.6, -0.1), (0.6, 0.6, 1.1))
+    spec = effects or "gravity;ground:mu=0.4;walls"
+    setup = PhysicsSetup("jelly", [body], spec, (-0.6, -0.6, -0.1), (0.6, 0.6, 1.1), res=reference_res)
     return build_scene(setup, views=views, frames=frames, resolution=resolution, seed=seed, progress=progress)

@@ -9,6 +9,7 @@ DESIGN.md "Data conventions")::
     OUT/gt/masks/r_VVV_FFF.png           uint8 object ids at pixel centres, for every view and frame
     OUT/gt/motion.npz                    the true motion (scene-specific arrays)
     OUT/gt/meta.json                     options, protocol, motion law, object table, renderer
+    OUT/contact_sheet.png                a grid of views (rows) × times (columns), to look at
 
 The protocol scales the 20-view / 89-frame benchmark: a few views spread around the ring are held out for
 interpolation (val), the last quarter of the frames is kept for extrapolation (test, every view).
@@ -33,6 +34,7 @@ from causalgs.progress import progress_bar
 __all__ = ["Protocol", "SynthScene", "protocol", "write_dataset"]
 
 _IMAGE_NAME = re.compile(r"^r_\d{3,}_\d{3,}\.png$")
+SHEET_VIEWS, SHEET_FRAMES = 4, 8  # the contact sheet: evenly spaced views (rows) and frames (columns)
 
 
 def _round_half_up(x: float) -> int:
@@ -151,10 +153,20 @@ def write_dataset(
     entries: dict[str, list] = {"train": [], "val": [], "test": []}
     written: set[Path] = set()
 
+    sheet_views = sorted(
+        {round(i * (views - 1) / max(1, min(views, SHEET_VIEWS) - 1)) for i in range(min(views, SHEET_VIEWS))}
+    )
+    sheet_frames = sorted(
+        {round(i * (frames - 1) / max(1, min(frames, SHEET_FRAMES) - 1)) for i in range(min(frames, SHEET_FRAMES))}
+    )
+    sheet: dict[tuple[int, int], np.ndarray] = {}
     with _progress(progress) as bar:
         task = bar.add_task(f"rendering {scene.name}", total=frames)
         for k in range(frames):
             for v, (rgb, alpha, ids) in enumerate(scene.render(k)):
+                if v in sheet_views and k in sheet_frames:
+                    a = np.asarray(alpha, dtype=np.float64)[..., None]
+                    sheet[v, k] = _to_uint8(a * np.asarray(rgb) + (1 - a) * np.asarray(bg))
                 split = proto.split_of(v, k)
                 stem = f"r_{v:03d}_{k:03d}"
                 img_path, mask_path = out / split / f"{stem}.png", out / "gt" / "masks" / f"{stem}.png"
@@ -190,6 +202,8 @@ def write_dataset(
         "renderer": scene.meta.get("renderer", "analytic ray casting"),
     }
     write_json(out / "gt" / "meta.json", meta)
+    rows = [np.concatenate([sheet[v, k] for k in sheet_frames], axis=1) for v in sheet_views]
+    write_image(out / "contact_sheet.png", np.concatenate(rows, axis=0))
     _remove_stale(out, written)
     return proto.counts()
 
