@@ -54,7 +54,7 @@ def cli():
 # Built commands
 # ---------------------------------------------------------------------------------------------------------------------
 @cli.command()
-@click.argument("name", type=click.Choice(["spin", "jelly"]))
+@click.argument("name", type=click.Choice(["spin", "fallingball", "jelly", "collide", "room"]))
 @out_option()
 @click.option("--views", type=click.IntRange(2, 200), default=20, show_default=True, help="Cameras on the ring.")
 @click.option("--frames", type=click.IntRange(2, 1000), default=89, show_default=True, help="Frames in time.")
@@ -78,9 +78,17 @@ def synth(name, out, views, frames, resolution, background, seed, effects, force
     """Write the built-in scene NAME as a dataset in --out.
 
     The layout is the D-NeRF / NVFi one (transforms_{train,val,test}.json, RGBA PNGs, points3d.ply) plus gt/ with
-    per-view per-frame object-id masks and the true motion. spin: rigid, analytic motion, ray-cast images. jelly: a
-    soft cube dropped on the ground, simulated by the project's MPM on a fine reference grid, rendered from its
-    embedded surface mesh by a z-buffer rasterizer. Never the model's rasterizer.
+    per-view per-frame object-id masks and the true motion.
+
+    \b
+    spin         a rigid fan spinning and drifting (analytic motion, ray-cast images)
+    fallingball  a stiff ball thrown up, falling and bouncing on the ground
+    jelly        a soft cube dropped on the ground, wobbling
+    collide      a stiff ball thrown into a soft block
+    room         a static room with three objects of different materials running into each other
+
+    All but spin are simulated by the project's MPM on a fine reference grid (--effects sets their external
+    effects) and rendered from embedded surface meshes by a z-buffer rasterizer; never by the model's rasterizer.
 
     train = the first 3/4 of the frames from all but the held-out views; val = the same frames from the held-out
     views (interpolation); test = the remaining future frames from every view (extrapolation).

@@ -24,9 +24,12 @@ __all__ = ["SCENES", "generate", "protocol"]
 SCENES: dict[str, Callable[..., SynthScene]] = {
     "spin": spin.build,
     "jelly": physics.jelly,
+    "fallingball": physics.fallingball,
+    "collide": physics.collide,
+    "room": physics.room,
 }
 # Scenes simulated by the MPM: they take an effects spec (any terms of the simulator's registry) and show progress.
-SIMULATED = {"jelly"}
+SIMULATED = {"jelly", "fallingball", "collide", "room"}
 
 
 def _check_options(name, views, frames, resolution, background) -> tuple[float, float, float]:

@@ -50,6 +50,7 @@ class Body:
     velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
     omega: tuple[float, float, float] = (0.0, 0.0, 0.0)
     checker: float = 0.06
+    kind: str = "elastic"  # for the object table: "elastic", or "stiff" for rigid-like bodies
 
     def inside(self, X: np.ndarray) -> np.ndarray:
         c = np.asarray(self.center)
@@ -84,6 +85,7 @@ class PhysicsSetup:
     hi: tuple[float, float, float]
     floor_half: float = 0.6  # the rendered floor square (m) on the ground plane, if a ground effect is active
     res: int = REFERENCE_RES  # grid cells along the longest side of the box [lo, hi]
+    static: list[Mesh] = field(default_factory=list)  # static background besides the floor (object id 1)
     meta: dict = field(default_factory=dict)
 
 
@@ -221,9 +223,11 @@ def build_scene(
         for i in range(views)
     ]
 
+    statics = ([floor] if floor is not None else []) + list(setup.static)
+
     def render(k: int):
-        ms = ([floor] if floor is not None else []) + meshes
-        pos = ([floor.X] if floor is not None else []) + [v[k] for v in verts]
+        ms = statics + meshes
+        pos = [m.X for m in statics] + [v[k] for v in verts]
         for cam in cameras:
             yield render_meshes(cam, ms, pos)
 
@@ -231,13 +235,14 @@ def build_scene(
     pts = np.concatenate([v[0] for v in verts])
     cols = np.concatenate([np.tile(np.asarray(m.color), (len(m.X), 1)) for m in meshes])
     eff = run["effects"]
-    objects = [{"id": FLOOR_ID, "name": "floor", "kind": "static"}] if floor is not None else []
+    objects = [{"id": FLOOR_ID, "name": "floor" + (" and walls" if setup.static else ""), "kind": "static"}]
+    objects = objects if statics else []
     for i, b in enumerate(setup.bodies):
         objects.append(
             {
                 "id": i + 2,
                 "name": b.name,
-                "kind": "elastic",
+                "kind": b.kind,
                 "shape": b.shape,
                 "size": list(b.size),
                 "center": list(b.center),
@@ -323,4 +328,106 @@ def jelly(
     )
     spec = effects or "gravity;ground:mu=0.4;walls"
     setup = PhysicsSetup("jelly", [body], spec, (-0.6, -0.6, -0.1), (0.6, 0.6, 1.1), res=reference_res)
+    return build_scene(setup, views=views, frames=frames, resolution=resolution, seed=seed, progress=progress)
+
+
+def fallingball(
+    *,
+    views: int,
+    frames: int,
+    resolution: int,
+    seed: int,
+    effects: str | None = None,
+    progress: bool = True,
+    reference_res: int = REFERENCE_RES,
+) -> SynthScene:
+    """A stiff textured ball thrown up and sideways, falling under gravity and bouncing on the ground (rigid-like)."""
+    rng = np.random.default_rng(seed)
+    (color,) = palette(rng, 1)
+    ball = Body(
+        "ball",
+        "ball",
+        (rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1), 0.45),
+        (0.09,),
+        E=rng.uniform(1.5e5, 2.5e5),
+        nu=0.3,
+        density=1.2e3,
+        color=color,
+        velocity=(rng.uniform(0.2, 0.4) * rng.choice([-1, 1]), rng.uniform(-0.2, 0.2), rng.uniform(0.5, 1.0)),
+        omega=tuple(rng.uniform(-3.0, 3.0, size=3)),
+        checker=0.05,
+        kind="stiff",
+    )
+    spec = effects or "gravity;ground:mu=0.3;walls"
+    setup = PhysicsSetup("fallingball", [ball], spec, (-0.6, -0.6, -0.1), (0.6, 0.6, 1.1), res=reference_res)
+    return build_scene(setup, views=views, frames=frames, resolution=resolution, seed=seed, progress=progress)
+
+
+def collide(
+    *,
+    views: int,
+    frames: int,
+    resolution: int,
+    seed: int,
+    effects: str | None = None,
+    progress: bool = True,
+    reference_res: int = REFERENCE_RES,
+) -> SynthScene:
+    """Two elastic bodies of very different stiffness: a stiff ball thrown into a soft block resting on the ground."""
+    rng = np.random.default_rng(seed)
+    c1, c2 = palette(rng, 2)
+    side = rng.choice([-1.0, 1.0])
+    block = Body("soft block", "box", (0.08 * side, 0.0, 0.101), (0.1, 0.1, 0.1), E=rng.uniform(0.8e4, 1.2e4),
+                 nu=0.4, density=1.0e3, color=c1, checker=0.05)  # fmt: skip
+    ball = Body("stiff ball", "ball", (-0.3 * side, rng.uniform(-0.03, 0.03), 0.2), (0.07,),
+                E=rng.uniform(2.5e5, 3.5e5), nu=0.3, density=1.5e3, color=c2,
+                velocity=(side * rng.uniform(1.6, 2.0), 0.0, rng.uniform(0.6, 0.9)), checker=0.04,
+                kind="stiff")  # fmt: skip
+    spec = effects or "gravity;ground:mu=0.5;walls"
+    setup = PhysicsSetup("collide", [block, ball], spec, (-0.6, -0.6, -0.1), (0.6, 0.6, 1.1), res=reference_res)
+    return build_scene(setup, views=views, frames=frames, resolution=resolution, seed=seed, progress=progress)
+
+
+def _room_walls(half: float, height: float) -> list[Mesh]:
+    """Four low walls around the floor square (their inner faces), textured like the floor."""
+    out = []
+    for axis in (0, 1):
+        for sign in (-1.0, 1.0):
+            lo = np.array([-half, -half, 0.0])
+            hi = np.array([half, half, height])
+            lo[axis], hi[axis] = (half, half + 0.02) if sign > 0 else (-half - 0.02, -half)
+            X, T = box_mesh(lo, hi, 6)
+            inner = np.isclose(X[T][:, :, axis], sign * half).all(axis=1)
+            out.append(Mesh(X, T[inner], FLOOR_ID, (0.85, 0.78, 0.66), checker=0.08, dark=0.75))
+    return out
+
+
+def room(
+    *,
+    views: int,
+    frames: int,
+    resolution: int,
+    seed: int,
+    effects: str | None = None,
+    progress: bool = True,
+    reference_res: int = REFERENCE_RES,
+) -> SynthScene:
+    """An indoor-like scene: a static room (floor, low walls) and three objects of different materials that move
+    and run into each other: a soft jelly cube, a stiff ball and a medium-stiff slab."""
+    rng = np.random.default_rng(seed)
+    c1, c2, c3 = palette(rng, 3)
+    jelly = Body("jelly", "box", (-0.22, -0.15, 0.2), (0.08, 0.08, 0.08), E=rng.uniform(0.8e4, 1.5e4), nu=0.45,
+                 density=1.0e3, color=c1, velocity=(0.9, 0.5, 0.0), omega=(0.0, 0.0, 2.0), checker=0.04)  # fmt: skip
+    ball = Body("ball", "ball", (0.25, -0.2, 0.3), (0.06,), E=rng.uniform(2e5, 3e5), nu=0.3, density=1.5e3,
+                color=c2, velocity=(-0.8, 0.7, 0.5), omega=tuple(rng.uniform(-3, 3, size=3)), checker=0.04,
+                kind="stiff")  # fmt: skip
+    slab = Body("slab", "box", (0.05, 0.22, 0.051), (0.14, 0.07, 0.05), E=rng.uniform(4e4, 6e4), nu=0.35,
+                density=800.0, color=c3, velocity=(0.0, -0.4, 0.0), checker=0.05)  # fmt: skip
+    spec = effects or "gravity;ground:mu=0.4;walls"
+    # The rendered walls stand where the simulation's domain walls act (the wall band of a 1.2 m box).
+    lo, hi = (-0.6, -0.6, -0.1), (0.6, 0.6, 1.1)
+    band = 3 * (hi[0] - lo[0]) / reference_res
+    half = 0.6 - band
+    setup = PhysicsSetup("room", [jelly, ball, slab], spec, lo, hi, floor_half=half, res=reference_res,
+                         static=_room_walls(half, 0.12))  # fmt: skip
     return build_scene(setup, views=views, frames=frames, resolution=resolution, seed=seed, progress=progress)

@@ -1,0 +1,101 @@
+"""fallingball, collide and room: layout, masks, and the physics of their generated ground truth (coarse reference
+grid for speed; the laws checked hold at any resolution)."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from causalgs.dataset import load_dataset
+from causalgs.synth import physics
+from causalgs.synth.writer import write_dataset
+
+VIEWS, RES, SIM_RES = 3, 32, 32
+
+
+def _make(tmp_path_factory, name: str, frames: int):
+    from causalgs import _ti
+
+    _ti.init("cpu", "float32")
+    out = tmp_path_factory.mktemp(name) / "data"
+    scene = getattr(physics, name)(views=VIEWS, frames=frames, resolution=RES, seed=3, progress=False,
+                                   reference_res=SIM_RES)  # fmt: skip
+    write_dataset(out, scene, background=(1, 1, 1), progress=False)
+    with np.load(out / "gt" / "motion.npz") as z:
+        motion = dict(z)
+    return out, load_dataset(out), motion, json.loads((out / "gt" / "meta.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def ball(tmp_path_factory):
+    return _make(tmp_path_factory, "fallingball", 8)
+
+
+@pytest.fixture(scope="module")
+def collide(tmp_path_factory):
+    return _make(tmp_path_factory, "collide", 12)
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    return _make(tmp_path_factory, "room", 6)
+
+
+def _strain(F) -> np.ndarray:
+    """max |FᵀF − I| per frame and particle (rotation-free)."""
+    F = F.astype(np.float64)
+    return np.abs(np.swapaxes(F, -1, -2) @ F - np.eye(3)).max(axis=(-1, -2))
+
+
+def _mask_ids(out, ds) -> set[int]:
+    ids = set()
+    for f in ds.frames():
+        mask = cv2.imread(str(out / "gt" / "masks" / f"r_{f.view:03d}_{f.frame:03d}.png"), cv2.IMREAD_UNCHANGED)
+        ids |= set(np.unique(mask).tolist())
+    return ids
+
+
+def test_ball_follows_its_throw_until_contact(ball):
+    """A stiff ball thrown up: its centre follows z0 + vz t − g t²/2 while in the air; it is seen in every image."""
+    out, ds, motion, meta = ball
+    (obj,) = [o for o in meta["objects"] if o["name"] == "ball"]
+    assert obj["kind"] == "stiff" and _mask_ids(out, ds) == {0, 1, 2}
+    com = motion["particles"].astype(np.float64).mean(1)
+    t = motion["seconds"]
+    vz = obj["velocity"][2]
+    dt = 1.0 / (24.0 * min(meta["motion"]["substeps_per_frame"]))
+    for k in range(1, len(t)):
+        if motion["particles"][k, :, 2].min() < 0.05:
+            break
+        law = com[0, 2] + vz * t[k] - 0.5 * 9.8 * t[k] ** 2
+        assert abs(com[k, 2] - law) < 0.01 * abs(com[k, 2] - com[0, 2]) + 9.8 * t[k] * dt, k
+    # Stiff: barely strains (F may rotate: the ball spins).
+    assert _strain(motion["F"]).max() < 0.05
+
+
+def test_collision_pushes_the_soft_block_and_deforms_it_more(collide):
+    out, ds, motion, meta = collide
+    assert _mask_ids(out, ds) == {0, 1, 2, 3}
+    obj = {o["id"]: o for o in meta["objects"]}
+    assert obj[2]["E"] * 10 < obj[3]["E"], "the ball is an order of magnitude stiffer than the block"
+    owner = motion["particle_object"]
+    x = motion["particles"].astype(np.float64)
+    strain = _strain(motion["F"])
+    assert strain[:, owner == 2].max() > 2 * strain[:, owner == 3].max(), "the soft block deforms more"
+    # The ball flies along x towards the block; momentum passes to the block, which moves the same way.
+    direction = np.sign(obj[3]["velocity"][0])
+    block = x[:, owner == 2].mean(1)
+    assert direction * (block[-1, 0] - block[0, 0]) > 0.005
+
+
+def test_room_has_static_background_and_three_bodies(room):
+    out, ds, _, meta = room
+    assert _mask_ids(out, ds) == {0, 1, 2, 3, 4}
+    kinds = sorted((o["name"], o["kind"]) for o in meta["objects"])
+    assert kinds == [("ball", "stiff"), ("floor and walls", "static"), ("jelly", "elastic"), ("slab", "elastic")]
+    Es = sorted(o["E"] for o in meta["objects"] if "E" in o)
+    assert Es[0] * 3 < Es[1] and Es[1] * 3 < Es[2], "three clearly different stiffnesses"
+    assert (out / "contact_sheet.png").is_file()
