@@ -147,7 +147,8 @@ def simulate(setup: PhysicsSetup, frames: int, fps: float, progress: bool = True
     v0 = np.zeros((n, 3))
     for i, b in enumerate(setup.bodies):
         sel = owner == i
-        v0[sel] = np.asarray(b.velocity) + np.cross(np.asarray(b.omega), X[sel] - np.asarray(b.center))
+        # Spin about the particles' centre of mass, so that ``velocity`` is exactly the body's momentum / mass.
+        v0[sel] = np.asarray(b.velocity) + np.cross(np.asarray(b.omega), X[sel] - X[sel].mean(0))
     sim = Simulator(store, cfg)
     sim.set_state(torch.from_numpy(X), torch.from_numpy(v0))
     xs = np.zeros((frames, n, 3), dtype=np.float32)
@@ -299,16 +300,7 @@ def build_scene(
 # -- the scenes ----------------------------------------------------------------------------------------------------
 
 
-def jelly(
-    *,
-    views: int,
-    frames: int,
-    resolution: int,
-    seed: int,
-    effects: str | None = None,
-    progress: bool = True,
-    reference_res: int = REFERENCE_RES,
-) -> SynthScene:
+def jelly_setup(*, seed: int, effects: str | None = None, reference_res: int = REFERENCE_RES) -> PhysicsSetup:
     """A soft elastic cube dropped on the ground: it lands, wobbles and slides (non-rigid)."""
     rng = np.random.default_rng(seed)
     (color,) = palette(rng, 1)
@@ -328,19 +320,10 @@ def jelly(
     )
     spec = effects or "gravity;ground:mu=0.4;walls"
     setup = PhysicsSetup("jelly", [body], spec, (-0.6, -0.6, -0.1), (0.6, 0.6, 1.1), res=reference_res)
-    return build_scene(setup, views=views, frames=frames, resolution=resolution, seed=seed, progress=progress)
+    return setup
 
 
-def fallingball(
-    *,
-    views: int,
-    frames: int,
-    resolution: int,
-    seed: int,
-    effects: str | None = None,
-    progress: bool = True,
-    reference_res: int = REFERENCE_RES,
-) -> SynthScene:
+def fallingball_setup(*, seed: int, effects: str | None = None, reference_res: int = REFERENCE_RES) -> PhysicsSetup:
     """A stiff textured ball thrown up and sideways, falling under gravity and bouncing on the ground (rigid-like)."""
     rng = np.random.default_rng(seed)
     (color,) = palette(rng, 1)
@@ -360,19 +343,10 @@ def fallingball(
     )
     spec = effects or "gravity;ground:mu=0.3;walls"
     setup = PhysicsSetup("fallingball", [ball], spec, (-0.6, -0.6, -0.1), (0.6, 0.6, 1.1), res=reference_res)
-    return build_scene(setup, views=views, frames=frames, resolution=resolution, seed=seed, progress=progress)
+    return setup
 
 
-def collide(
-    *,
-    views: int,
-    frames: int,
-    resolution: int,
-    seed: int,
-    effects: str | None = None,
-    progress: bool = True,
-    reference_res: int = REFERENCE_RES,
-) -> SynthScene:
+def collide_setup(*, seed: int, effects: str | None = None, reference_res: int = REFERENCE_RES) -> PhysicsSetup:
     """Two elastic bodies of very different stiffness: a stiff ball thrown into a soft block resting on the ground."""
     rng = np.random.default_rng(seed)
     c1, c2 = palette(rng, 2)
@@ -385,7 +359,7 @@ def collide(
                 kind="stiff")  # fmt: skip
     spec = effects or "gravity;ground:mu=0.5;walls"
     setup = PhysicsSetup("collide", [block, ball], spec, (-0.6, -0.6, -0.1), (0.6, 0.6, 1.1), res=reference_res)
-    return build_scene(setup, views=views, frames=frames, resolution=resolution, seed=seed, progress=progress)
+    return setup
 
 
 def _room_walls(half: float, height: float) -> list[Mesh]:
@@ -402,16 +376,7 @@ def _room_walls(half: float, height: float) -> list[Mesh]:
     return out
 
 
-def room(
-    *,
-    views: int,
-    frames: int,
-    resolution: int,
-    seed: int,
-    effects: str | None = None,
-    progress: bool = True,
-    reference_res: int = REFERENCE_RES,
-) -> SynthScene:
+def room_setup(*, seed: int, effects: str | None = None, reference_res: int = REFERENCE_RES) -> PhysicsSetup:
     """An indoor-like scene: a static room (floor, low walls) and three objects of different materials that move
     and run into each other: a soft jelly cube, a stiff ball and a medium-stiff slab."""
     rng = np.random.default_rng(seed)
@@ -430,4 +395,24 @@ def room(
     half = 0.6 - band
     setup = PhysicsSetup("room", [jelly, ball, slab], spec, lo, hi, floor_half=half, res=reference_res,
                          static=_room_walls(half, 0.12))  # fmt: skip
-    return build_scene(setup, views=views, frames=frames, resolution=resolution, seed=seed, progress=progress)
+    return setup
+
+
+def _builder(make_setup, name: str):
+    def build(*, views: int, frames: int, resolution: int, seed: int, effects: str | None = None,
+              progress: bool = True, reference_res: int = REFERENCE_RES) -> SynthScene:  # fmt: skip
+        setup = make_setup(seed=seed, effects=effects, reference_res=reference_res)
+        return build_scene(setup, views=views, frames=frames, resolution=resolution, seed=seed, progress=progress)
+
+    build.__name__ = build.__qualname__ = name
+    build.__doc__ = make_setup.__doc__
+    return build
+
+
+# name -> setup(seed=, effects=, reference_res=): the bodies and effects without simulating (tests use them to check
+# effect switches on trajectories alone).
+SETUPS = {"fallingball": fallingball_setup, "jelly": jelly_setup, "collide": collide_setup, "room": room_setup}
+fallingball = _builder(fallingball_setup, "fallingball")
+jelly = _builder(jelly_setup, "jelly")
+collide = _builder(collide_setup, "collide")
+room = _builder(room_setup, "room")
