@@ -54,7 +54,7 @@ def cli():
 # Built commands
 # ---------------------------------------------------------------------------------------------------------------------
 @cli.command()
-@click.argument("name", type=click.Choice(["spin", "fallingball", "jelly", "collide", "room"]))
+@click.argument("name", type=click.Choice(["spin", "fallingball", "jelly", "collide", "room", "all"]))
 @out_option()
 @click.option("--views", type=click.IntRange(2, 200), default=20, show_default=True, help="Cameras on the ring.")
 @click.option("--frames", type=click.IntRange(2, 1000), default=89, show_default=True, help="Frames in time.")
@@ -86,6 +86,7 @@ def synth(name, out, views, frames, resolution, background, seed, effects, force
     jelly        a soft cube dropped on the ground, wobbling
     collide      a stiff ball thrown into a soft block
     room         a static room with three objects of different materials running into each other
+    all          every scene above, each into --out/NAME (the benchmark suite)
 
     All but spin are simulated by the project's MPM on a fine reference grid (--effects sets their external
     effects) and rendered from embedded surface meshes by a z-buffer rasterizer; never by the model's rasterizer.
@@ -93,21 +94,15 @@ def synth(name, out, views, frames, resolution, background, seed, effects, force
     train = the first 3/4 of the frames from all but the held-out views; val = the same frames from the held-out
     views (interpolation); test = the remaining future frames from every view (extrapolation).
     """
-    from causalgs.synth import generate
+    from causalgs.synth import SCENES, generate
 
     bg = parse_rgb(background, "--background")
-    summary = generate(
-        name,
-        out,
-        views=views,
-        frames=frames,
-        resolution=resolution,
-        background=bg,
-        seed=seed,
-        overwrite=force,
-        effects=effects,
-    )
-    click.echo(summary)
+    if name == "all" and effects is not None:
+        raise CausalGSError("--effects applies to one simulated scene, not to 'all'")
+    for n in list(SCENES) if name == "all" else [name]:
+        target = Path(out) / n if name == "all" else out
+        opts = {"views": views, "frames": frames, "resolution": resolution, "background": bg, "seed": seed}
+        click.echo(generate(n, target, **opts, overwrite=force, effects=effects))
 
 
 @cli.command()

@@ -7,8 +7,8 @@ moves and deforms with the material). Deformable meshes are carried by simulated
 
 Rendering (:func:`render_meshes`): vertices are projected with the OpenCV camera; a Taichi kernel walks each
 triangle's pixel box at ``ss × ss`` subsamples per pixel and keeps, per subsample, the nearest triangle by an
-atomic min over (depth, triangle index) packed into one 64-bit key (perspective-correct depth). Shading is done in
-torch on the hit subsamples: perspective-correct barycentrics → rest coordinates → checker albedo, times Lambert with
+atomic min over (depth, triangle index) packed into one 64-bit key (perspective-correct depth). Shading is a second
+kernel over the hit subsamples: perspective-correct barycentrics → rest coordinates → checker albedo, times Lambert with
 a fixed light and ambient term. Colour and coverage are the means over subsamples; object ids are read at the pixel
 centre (``ss`` is odd).
 """
@@ -150,6 +150,43 @@ def _raster(pix: ti.types.ndarray(), depth: ti.types.ndarray(), tris: ti.types.n
                             ti.atomic_min(zbuf[y * width + x], (key << 32) | ti.cast(t, ti.i64))
 
 
+@ti.kernel
+def _shade(zbuf: ti.types.ndarray(), pix: ti.types.ndarray(), depth: ti.types.ndarray(), tris: ti.types.ndarray(),
+           rest: ti.types.ndarray(), verts: ti.types.ndarray(), tri_mesh: ti.types.ndarray(),
+           color: ti.types.ndarray(), checker: ti.types.ndarray(), dark: ti.types.ndarray(),
+           mesh_id: ti.types.ndarray(), width: ti.i32, light: ti.math.vec3, ambient: float,
+           rgb: ti.types.ndarray(), ids: ti.types.ndarray()):  # fmt: skip
+    """Per subsample with a hit: perspective-correct barycentrics at its centre → rest coordinates → checker albedo,
+    times two-sided Lambert on the face normal; and the object id."""
+    for i in range(zbuf.shape[0]):
+        key = zbuf[i]
+        if key != ti.i64(EMPTY):
+            t = ti.cast(key & ti.i64(0xFFFFFFFF), ti.i32)
+            a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+            px, py = ti.cast(i % width, float) + 0.5, ti.cast(i // width, float) + 0.5
+            ax, ay, bx, by, cx, cy = pix[a, 0], pix[a, 1], pix[b, 0], pix[b, 1], pix[c, 0], pix[c, 1]
+            area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+            w0 = ((bx - px) * (cy - py) - (by - py) * (cx - px)) / area
+            w1 = ((cx - px) * (ay - py) - (cy - py) * (ax - px)) / area
+            l0, l1, l2 = w0 / depth[a], w1 / depth[b], (1.0 - w0 - w1) / depth[c]
+            s = l0 + l1 + l2
+            l0, l1, l2 = l0 / s, l1 / s, l2 / s
+            m = tri_mesh[t]
+            cells = 0
+            for d in ti.static(range(3)):
+                X = l0 * rest[a, d] + l1 * rest[b, d] + l2 * rest[c, d]
+                cells += ti.cast(ti.floor(X / checker[m]), ti.i32)
+            e1 = ti.Vector([verts[b, d] - verts[a, d] for d in ti.static(range(3))])
+            e2 = ti.Vector([verts[c, d] - verts[a, d] for d in ti.static(range(3))])
+            n = e1.cross(e2)
+            n = n / (n.norm() + 1e-30)
+            shade = ambient + (1.0 - ambient) * ti.abs(n.dot(light))
+            f = ti.select(cells % 2 == 0, 1.0, dark[m]) * shade
+            for d in ti.static(range(3)):
+                rgb[i, d] = ti.min(ti.max(color[m, d] * f, 0.0), 1.0)
+            ids[i] = mesh_id[m]
+
+
 def render_meshes(camera: Camera, meshes: list[Mesh], positions: list[np.ndarray], ss: int = SUPERSAMPLE,
                   background=(1.0, 1.0, 1.0)):  # fmt: skip
     """Render ``meshes`` (vertex ``positions`` per mesh, world) into ``(rgb [H, W, 3], alpha [H, W], ids [H, W])``:
@@ -172,32 +209,19 @@ def render_meshes(camera: Camera, meshes: list[Mesh], positions: list[np.ndarray
             torch.from_numpy(tris), len(tris), W, H, 1e-4, (2.0**DEPTH_BITS - 2) / far, zbuf)  # fmt: skip
     hit = zbuf != EMPTY
     rgb = torch.zeros(H * W, 3, dtype=torch.float64)
-    ids = torch.zeros(H * W, dtype=torch.int64)
-    if bool(hit.any()):
-        t = (zbuf[hit] & 0xFFFFFFFF).numpy()
-        pidx = torch.nonzero(hit).flatten().numpy()
-        px = np.stack([pidx % W + 0.5, pidx // W + 0.5], -1)
-        tv = tris[t]
-        a, b, c = pix[tv[:, 0]], pix[tv[:, 1]], pix[tv[:, 2]]
-        area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
-        w0 = ((b[:, 0] - px[:, 0]) * (c[:, 1] - px[:, 1]) - (b[:, 1] - px[:, 1]) * (c[:, 0] - px[:, 0])) / area
-        w1 = ((c[:, 0] - px[:, 0]) * (a[:, 1] - px[:, 1]) - (c[:, 1] - px[:, 1]) * (a[:, 0] - px[:, 0])) / area
-        lam = np.stack([w0, w1, 1.0 - w0 - w1], -1) / z[tv]
-        lam /= lam.sum(1, keepdims=True)  # perspective-correct barycentrics
-        rest = np.concatenate([m.X for m in meshes])
-        X = (lam[..., None] * rest[tv]).sum(1)
-        e1, e2 = verts[tv[:, 1]] - verts[tv[:, 0]], verts[tv[:, 2]] - verts[tv[:, 0]]
-        nrm = np.cross(e1, e2)
-        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True) + 1e-30
-        shade = AMBIENT + (1.0 - AMBIENT) * np.abs(nrm @ LIGHT)  # two-sided Lambert
-        mi = tri_mesh[t]
-        color = np.stack([np.asarray(m.color, dtype=np.float64) for m in meshes])[mi]
-        size = np.array([m.checker for m in meshes])[mi]
-        dark = np.array([m.dark for m in meshes])[mi]
-        cells = np.floor(X / size[:, None]).sum(1).astype(np.int64)
-        albedo = color * np.where(cells % 2 == 0, 1.0, dark)[:, None]
-        rgb[hit] = torch.from_numpy(np.clip(albedo * shade[:, None], 0.0, 1.0))
-        ids[hit] = torch.from_numpy(np.array([m.object_id for m in meshes])[mi])
+    ids = torch.zeros(H * W, dtype=torch.int32)
+
+    def t64(a):
+        return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64))
+
+    def t32(a):
+        return torch.from_numpy(np.ascontiguousarray(a, dtype=np.int32))
+
+    rest = np.concatenate([m.X for m in meshes])
+    per_mesh = [t64([m.color for m in meshes]), t64([m.checker for m in meshes]), t64([m.dark for m in meshes]),
+                t32([m.object_id for m in meshes])]  # fmt: skip
+    _shade(zbuf, t64(pix), t64(z), t32(tris), t64(rest), t64(verts), t32(tri_mesh), *per_mesh, W, LIGHT.tolist(),
+           AMBIENT, rgb, ids)  # fmt: skip
     hit_img = hit.reshape(camera.height, ss, camera.width, ss).double()
     cover = hit_img.mean((1, 3))
     rgb_img = rgb.reshape(camera.height, ss, camera.width, ss, 3).sum((1, 3))
