@@ -108,7 +108,10 @@ def _hashes(root) -> dict[str, str]:
             if p.is_file()}  # fmt: skip
 
 
-@pytest.mark.parametrize("name", ["fallingball", "collide", "room"])
+@pytest.mark.parametrize(
+    "name",
+    ["room", pytest.param("fallingball", marks=pytest.mark.slow), pytest.param("collide", marks=pytest.mark.slow)],
+)
 def test_deterministic_for_a_seed(tmp_path, name):
     from causalgs import _ti
 
@@ -121,7 +124,9 @@ def test_deterministic_for_a_seed(tmp_path, name):
     assert _hashes(outs[0]) == _hashes(outs[1])
 
 
+@pytest.mark.slow
 def test_cli_writes_the_whole_suite(tmp_path):
+    """Slow: simulates every scene at the default reference resolution."""
     from click.testing import CliRunner
 
     from cli.main import cli
