@@ -10,9 +10,9 @@ version-check network call before Taichi is loaded. Nothing initialises Taichi a
   :func:`torch_dtype` the matching torch dtype. Finite-difference gradient checks need ``float64``.
 - The offline kernel cache is on. Its folder is ``$CAUSALGS_TI_CACHE`` or ``~/.cache/causalgs/taichi``: a gradient
   kernel of the simulator takes minutes to compile cold and seconds from the cache. Its size limit is
-  ``$CAUSALGS_TI_CACHE_MB`` (default 2048): Taichi's own default of 100 MB evicts a quarter of the cache (least
-  recently used) whenever it is exceeded, and the project's kernels in both precisions, for several effect sets and
-  grid shapes, pass 100 MB, so cached gradient kernels were recompiled cold.
+  ``$CAUSALGS_TI_CACHE_MB`` (default 1024, at most 2047): Taichi's own default of 100 MB evicts a quarter of the
+  cache (least recently used) whenever it is exceeded, and the project's kernels in both precisions, for several
+  effect sets and grid shapes, pass 100 MB, so cached gradient kernels were recompiled cold.
 - torch runs with ``$CAUSALGS_TORCH_THREADS`` threads (default 1): beside Taichi's own thread pool, one torch
   thread measured ~20× faster than the default for the small ops of this project on 2 cores. Taichi's CPU pool has
   ``$CAUSALGS_TI_THREADS`` threads (default: all cores).
@@ -108,7 +108,8 @@ def init(device: str = "cpu", precision: str = "float32", *, debug: bool = False
             debug=debug,
             offline_cache=True,
             offline_cache_file_path=str(folder),
-            offline_cache_max_size_of_files=_env_threads(CACHE_MB_ENV, 2048) * 1024 * 1024,
+            # Taichi holds the limit in a C int: at most 2047 MB.
+            offline_cache_max_size_of_files=min(_env_threads(CACHE_MB_ENV, 1024), 2047) * 1024 * 1024,
             log_level=ti.WARN,
             unrolling_limit=64,  # the store copies unroll 16x3 SH matrices
             cpu_max_num_threads=_env_threads(TI_THREADS_ENV, os.cpu_count() or 1),
