@@ -243,3 +243,42 @@ class Camera:
         return cls.from_blender(
             c2w, w, h, fov_x=fov, fl_x=intr.get("fl_x"), fl_y=intr.get("fl_y"), cx=intr.get("cx"), cy=intr.get("cy")
         )
+
+
+def ring_direction(i: int, views: int, elevations_deg) -> np.ndarray:
+    """Unit direction of camera ``i`` of ``views`` on a ring around +z: evenly spaced azimuths, elevations taken in
+    turn from ``elevations_deg``."""
+    az = 2.0 * math.pi * i / views
+    el = math.radians(elevations_deg[i % len(elevations_deg)])
+    return np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+
+
+def fit_ring_distance(points, directions, target, fov_x: float, fill: float = 0.9, radii=None,
+                      start: float = 0.1, iters: int = 40) -> float:  # fmt: skip
+    """The smallest distance d at which cameras at ``target + d * directions[i]``, looking at ``target`` (square
+    images, horizontal field of view ``fov_x``), all see every point — a sphere of radius ``radii[j]`` (default 0) —
+    inside ``fill`` of the image. Bisection from ``start``: the fit is monotone in d because every camera looks at
+    the target."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    rad = np.zeros(len(pts)) if radii is None else np.asarray(radii, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
+    tan_a = fill * math.tan(fov_x / 2.0)
+    norm = math.sqrt(1.0 + tan_a * tan_a)
+
+    def fits(dist: float) -> bool:
+        for direction in directions:
+            c2w = look_at(target + dist * np.asarray(direction), target)
+            rel = pts - c2w[:3, 3]
+            x, y, z = rel @ c2w[:3, 0], rel @ c2w[:3, 1], -(rel @ c2w[:3, 2])  # depth along the view
+            # Distance to the four frustum side planes |x| = z tan_a, |y| = z tan_a must exceed the radius.
+            if np.any((z * tan_a - np.maximum(np.abs(x), np.abs(y))) / norm < rad):
+                return False
+        return True
+
+    lo, hi = start, 2.0 * start
+    while not fits(hi):
+        lo, hi = hi, 2.0 * hi
+    for _ in range(iters):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if fits(mid) else (mid, hi)
+    return hi

@@ -46,6 +46,24 @@ def _base(Xp, shape: ti.template()):
     return ti.max(ti.min(b, ti.Vector(shape) - 3), 0)
 
 
+@ti.func
+def _stencil(x, lo, inv_dx, shape: ti.template()):
+    """The 3×3×3 stencil of a particle at ``x``: its lower corner node, its position in cells from that corner
+    (``fx``) and the quadratic B-spline weights ``W[i, d]`` of node offset ``i`` along axis ``d``."""
+    Xp = (x - lo) * inv_dx
+    base = _base(Xp, shape)
+    fx = Xp - ti.cast(base, float)
+    W = ti.Matrix.rows([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2])
+    return base, fx, W
+
+
+@ti.func
+def _weight_grad(fx, W, i: ti.template(), j: ti.template(), k: ti.template()):
+    """∇_fx of the weight W[i, 0] W[j, 1] W[k, 2] (the adjoints' position term)."""
+    dW = ti.Matrix.rows([fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5])
+    return ti.Vector([dW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * dW[j, 1] * W[k, 2], W[i, 0] * W[j, 1] * dW[k, 2]])
+
+
 @ti.kernel
 def particle_box(x: ti.template(), s: ti.i32, n: ti.i32, lo: ti.math.vec3, inv_dx: float, shape: ti.template(),
                  box: ti.template()):  # fmt: skip
@@ -110,17 +128,14 @@ def p2g(
     the effects, so it compiles once)."""
     ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
-        Xp = (x[p, s] - lo) * inv_dx
-        base = _base(Xp, grid_m.shape)
-        fx = Xp - ti.cast(base, float)
-        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+        base, fx, W = _stencil(x[p, s], lo, inv_dx, grid_m.shape)
         mass = density[p] * vol[p]
         mv = mass * v[p, s]
         A = affine[p]
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             offset = ti.Vector([i, j, k])
             dpos = (ti.cast(offset, float) - fx) / inv_dx
-            weight = w[i][0] * w[j][1] * w[k][2]
+            weight = W[i, 0] * W[j, 1] * W[k, 2]
             grid_v_in[base + offset] += weight * (mv + A @ dpos)
             grid_m[base + offset] += weight * mass
 
@@ -148,11 +163,7 @@ def p2g_adjoint(
     Checked against Taichi's autodiff of :func:`p2g` and finite differences (tests/sim)."""
     ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
-        Xp = (x[p, s] - lo) * inv_dx
-        base = _base(Xp, grid_m.shape)
-        fx = Xp - ti.cast(base, float)
-        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
-        dw = [fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5]
+        base, fx, W = _stencil(x[p, s], lo, inv_dx, grid_m.shape)
         mass = density[p] * vol[p]
         vp = v[p, s]
         A = affine[p]
@@ -164,9 +175,8 @@ def p2g_adjoint(
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             offset = ti.Vector([i, j, k])
             dpos = (ti.cast(offset, float) - fx) / inv_dx
-            weight = w[i][0] * w[j][1] * w[k][2]
-            grad_w = ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
-                                w[i][0] * w[j][1] * dw[k][2]])  # fmt: skip
+            weight = W[i, 0] * W[j, 1] * W[k, 2]
+            grad_w = _weight_grad(fx, W, i, j, k)
             gp = grid_v_in.grad[base + offset]
             gm = grid_m.grad[base + offset]
             g_fx += (gp.dot(mass * vp + A @ dpos) + gm * mass) * grad_w - (weight / inv_dx) * (At @ gp)
@@ -217,17 +227,14 @@ def g2p(
     """Gather v and the APIC matrix C = 4/dx² Σ w v_i (x_i − x_p)ᵀ into slot s+1; advect x with the new v."""
     ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
-        Xp = (x[p, s] - lo) * inv_dx
-        base = _base(Xp, grid_v_out.shape)
-        fx = Xp - ti.cast(base, float)
-        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+        base, fx, W = _stencil(x[p, s], lo, inv_dx, grid_v_out.shape)
         new_v = ti.Vector.zero(float, 3)
         new_C = ti.Matrix.zero(float, 3, 3)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             offset = ti.Vector([i, j, k])
             dpos = ti.cast(offset, float) - fx
             g_v = grid_v_out[base + offset]
-            weight = w[i][0] * w[j][1] * w[k][2]
+            weight = W[i, 0] * W[j, 1] * W[k, 2]
             new_v += weight * g_v
             new_C += (4.0 * inv_dx * weight) * g_v.outer_product(dpos)
         v[p, s + 1] = new_v
@@ -255,11 +262,7 @@ def g2p_adjoint(
     dL/dx += dL/dx' + inv_dx dL/dfx. Checked against Taichi's autodiff of :func:`g2p` and finite differences."""
     ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
-        Xp = (x[p, s] - lo) * inv_dx
-        base = _base(Xp, grid_v_out.shape)
-        fx = Xp - ti.cast(base, float)
-        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
-        dw = [fx - 1.5, -2.0 * (fx - 1.0), fx - 0.5]
+        base, fx, W = _stencil(x[p, s], lo, inv_dx, grid_v_out.shape)
         gx = x.grad[p, s + 1]
         a = v.grad[p, s + 1] + dt * gx
         G = C.grad[p, s + 1]
@@ -268,9 +271,8 @@ def g2p_adjoint(
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
             offset = ti.Vector([i, j, k])
             dpos = ti.cast(offset, float) - fx
-            weight = w[i][0] * w[j][1] * w[k][2]
-            grad_w = ti.Vector([dw[i][0] * w[j][1] * w[k][2], w[i][0] * dw[j][1] * w[k][2],
-                                w[i][0] * w[j][1] * dw[k][2]])  # fmt: skip
+            weight = W[i, 0] * W[j, 1] * W[k, 2]
+            grad_w = _weight_grad(fx, W, i, j, k)
             g_v = grid_v_out[base + offset]
             Gd = G @ dpos
             grid_v_out.grad[base + offset] += weight * (a + c * Gd)

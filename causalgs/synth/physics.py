@@ -15,14 +15,13 @@ can carry an effect the model does not know of). The builder:
 from __future__ import annotations
 
 import colorsys
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from causalgs import _ti
-from causalgs.cameras import Camera, look_at
+from causalgs.cameras import Camera, fit_ring_distance, look_at, ring_direction
 from causalgs.errors import CausalGSError
 from causalgs.progress import progress_bar
 from causalgs.synth.mesh import AMBIENT, LIGHT, SUPERSAMPLE, Embedding, Mesh, box_mesh, render_meshes, sphere_mesh
@@ -173,34 +172,6 @@ def simulate(setup: PhysicsSetup, frames: int, fps: float, progress: bool = True
     }
 
 
-def _fit_distance(points: np.ndarray, views: int, target: np.ndarray, fill: float = 0.9) -> float:
-    """The smallest ring radius at which every camera sees all ``points`` inside ``fill`` of its image."""
-    tan_a = fill * math.tan(FOV / 2.0)
-
-    def fits(dist: float) -> bool:
-        for i in range(views):
-            c2w = look_at(target + dist * _eye(i, views), target)
-            rel = points - c2w[:3, 3]
-            x, y, z = rel @ c2w[:3, 0], rel @ c2w[:3, 1], -(rel @ c2w[:3, 2])
-            if np.any(z <= 0) or np.any(np.maximum(np.abs(x), np.abs(y)) > z * tan_a):
-                return False
-        return True
-
-    lo, hi = 0.1, 1.0
-    while not fits(hi):
-        lo, hi = hi, 2.0 * hi
-    for _ in range(30):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (lo, mid) if fits(mid) else (mid, hi)
-    return hi
-
-
-def _eye(i: int, views: int) -> np.ndarray:
-    az = 2.0 * math.pi * i / views
-    el = math.radians(ELEVATIONS_DEG[i % len(ELEVATIONS_DEG)])
-    return np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
-
-
 def build_scene(
     setup: PhysicsSetup, *, views: int, frames: int, resolution: int, seed: int, progress: bool = True
 ) -> SynthScene:
@@ -218,9 +189,10 @@ def build_scene(
     # Cameras look at the centre of the bodies' path, from the closest ring that keeps them in every frame.
     allv = np.concatenate([v.reshape(-1, 3) for v in verts])
     target = 0.5 * (allv.min(0) + allv.max(0))
-    dist = _fit_distance(allv[:: max(1, len(allv) // 20000)], views, target)
+    dirs = [ring_direction(i, views, ELEVATIONS_DEG) for i in range(views)]
+    dist = fit_ring_distance(allv[:: max(1, len(allv) // 20000)], dirs, target, FOV)
     cameras = [
-        Camera.from_blender(look_at(target + dist * _eye(i, views), target), resolution, resolution, fov_x=FOV)
+        Camera.from_blender(look_at(target + dist * dirs[i], target), resolution, resolution, fov_x=FOV)
         for i in range(views)
     ]
 

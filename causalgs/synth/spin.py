@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from causalgs.cameras import Camera, look_at
+from causalgs.cameras import Camera, fit_ring_distance, look_at, ring_direction
 from causalgs.synth.raycast import Box, Cylinder, RigidBody, Sphere, rotation_exp
 from causalgs.synth.writer import SynthScene
 
@@ -101,9 +101,7 @@ class SpinScene:
         return rotation_exp(self.omega * t), self.c0 + self.velocity * t
 
     def _eye_direction(self, i: int) -> np.ndarray:
-        az = 2.0 * math.pi * i / self.views
-        el = math.radians(ELEVATIONS_DEG[i % len(ELEVATIONS_DEG)])
-        return np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        return ring_direction(i, self.views, ELEVATIONS_DEG)
 
     def _camera(self, i: int) -> Camera:
         c2w = look_at(self.distance * self._eye_direction(i), (0.0, 0.0, 0.0))
@@ -113,8 +111,7 @@ class SpinScene:
         """The smallest ring radius at which every view sees the whole body in frame at every frame.
 
         Boxes are tested by their corners (a box is inside the convex frustum iff its corners are), the hub and the
-        axle by bounding spheres; the frustum is the image shrunk to ``FILL``. Bisection: the fit is monotone in
-        the distance because every camera looks at the centre of the path.
+        axle by bounding spheres; the frustum is the image shrunk to ``FILL``.
         """
         local, radii = [], []
         for prim in self.body.prims:
@@ -127,29 +124,9 @@ class SpinScene:
                 local.append(centre[None])
                 radii.append(np.array([r]))
         pts_b, radii = np.concatenate(local), np.concatenate(radii)
-        poses = [self.pose(k) for k in range(self.frames)]
-        pts = np.concatenate([pts_b @ R.T + c for R, c in poses])  # [F*M, 3]
-        rad = np.tile(radii, self.frames)
-        tan_a = FILL * math.tan(FOV / 2.0)
-        norm = math.sqrt(1.0 + tan_a * tan_a)
-
-        def fits(dist: float) -> bool:
-            for i in range(self.views):
-                c2w = look_at(dist * self._eye_direction(i), (0.0, 0.0, 0.0))
-                rel = pts - c2w[:3, 3]
-                x, y, z = rel @ c2w[:3, 0], rel @ c2w[:3, 1], -(rel @ c2w[:3, 2])  # depth along the view
-                # Distance to the four frustum side planes |x| = z tan_a, |y| = z tan_a must exceed the radius.
-                if np.any((z * tan_a - np.maximum(np.abs(x), np.abs(y))) / norm < rad):
-                    return False
-            return True
-
-        lo, hi = self.body.radius, 2.0 * self.body.radius
-        while not fits(hi):
-            lo, hi = hi, 2.0 * hi
-        for _ in range(40):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (lo, mid) if fits(mid) else (mid, hi)
-        return hi
+        pts = np.concatenate([pts_b @ R.T + c for R, c in (self.pose(k) for k in range(self.frames))])  # [F*M, 3]
+        dirs = [self._eye_direction(i) for i in range(self.views)]
+        return fit_ring_distance(pts, dirs, (0.0, 0.0, 0.0), FOV, FILL, np.tile(radii, self.frames), self.body.radius)
 
     # -- appearance -----------------------------------------------------------------------------------------------
     def albedo(self, p_body: np.ndarray, part: np.ndarray) -> np.ndarray:
