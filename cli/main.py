@@ -14,6 +14,7 @@ import click
 
 from causalgs import __version__
 from causalgs.errors import CausalGSError
+from cli.model import eval_, fit, predict
 from cli.options import out_option, parse_rgb, seed_option
 from cli.render import render
 
@@ -45,8 +46,10 @@ def cli():
     Typical session:
       causalgs synth spin --out data/spin       # a built-in scene with ground truth
       causalgs info data/spin                   # check a dataset and print its summary
-      causalgs fit data/spin --out runs/spin    # learn the scene (not built yet)
-      causalgs predict runs/spin --frames 22    # extrapolate the future (not built yet)
+      causalgs fit data/spin --out runs/spin    # learn the scene (--preset quick|full)
+      causalgs predict runs/spin --frames 22    # extrapolate the future with the simulator
+      causalgs eval runs/spin                   # interpolation and extrapolation metrics
+      causalgs render runs/spin --view 3 --time 0.9 --out v3.png
     """
 
 
@@ -121,6 +124,9 @@ def info(data, downscale):
 
 
 cli.add_command(render)
+cli.add_command(fit)
+cli.add_command(predict)
+cli.add_command(eval_)
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -137,8 +143,6 @@ def _not_built(name: str, what: str, issue: int):
 
 
 _PLANNED = {
-    "fit": ("learn a scene from multi-view video: canonical Gaussians, velocities, materials, MPM", 6),
-    "predict": ("extrapolate future frames with the simulator (--frames 22)", 6),
     "cluster": ("segment the scene into objects by learned physics (K-means on material features)", 6),
     "discover": ("find and name a physical effect the model is missing, add it and show the error shrink", 7),
 }

@@ -30,7 +30,10 @@ WHITE = (1.0, 1.0, 1.0)
 @click.option(
     "--split", type=click.Choice(["test", "val", "train"]), default="test", show_default=True, help="With --data."
 )
-@click.option("--time", "time_", type=float, help="Frame time in [0, 1] (runs render their canonical t = 0 state).")
+@click.option("--time", "time_", type=float,
+              help="Dataset time of a fitted RUN (0 = first frame, 1 = last frame of the video).")
+@click.option("--dynamics", type=click.Choice(["auto", "mpm", "velocity", "frozen"]), default="auto", show_default=True,
+              help="Fitted RUN with --time: auto = kinematic inside the observed window, the simulator beyond it.")
 @click.option(
     "--out",
     "out",
@@ -56,15 +59,21 @@ WHITE = (1.0, 1.0, 1.0)
 @device_option
 @precision_option
 def render(
-    run, ply, camera, data, view, split, time_, out, background, turntable, fps, orbit_center, device, precision
+    run, ply, camera, data, view, split, time_, dynamics, out, background, turntable, fps, orbit_center, device,
+    precision,
 ):
-    """Render the canonical Gaussians of RUN (a saved run folder with gaussians.ply) or of a 3DGS PLY.
+    """Render a fitted RUN at any time from any of its dataset's cameras, or the canonical Gaussians of a run
+    folder or of a 3DGS PLY.
+
+    A fitted RUN with --view N (a camera of its dataset, by view id) and optional --time T renders the moving scene
+    (the kinematic path inside the observed window, the simulator beyond it; see --dynamics).
 
     The camera comes from --camera CAM.json or from frame --view of a dataset's --split (--data DIR). With
     --turntable N the camera orbits the scene (same distance and elevation, up = +z) and an MP4 is written.
 
     \b
     Examples:
+      causalgs render runs/jelly --view 3 --time 0.9 --out future.png
       causalgs render --ply scene.ply --camera cam.json --out img.png
       causalgs render runs/spin --data data/spin --view 3 --split test --out view3.png
       causalgs render --ply scene.ply --data data/spin --turntable 120 --out orbit.mp4
@@ -75,6 +84,9 @@ def render(
     from causalgs.render.views import load_camera_json, render_camera, render_turntable
 
     _check_out(out, turntable)
+    if run is not None and (run / "checkpoint.pt").is_file() and data is None and camera is None and not turntable:
+        _render_run(run, view or 0, time_, dynamics, out, device)
+        return
     ply_path = _gaussians_path(run, ply)
     if camera is not None and data is not None:
         raise CausalGSError("give either --camera or --data, not both")
@@ -82,6 +94,8 @@ def render(
         raise CausalGSError("--view and --split choose a dataset camera: they need --data DIR")
     if time_ is not None and not 0.0 <= time_ <= 1.0:
         raise CausalGSError(f"--time {time_:g} must be in [0, 1]")
+    if data is None and camera is None and view is not None and run is not None:
+        raise CausalGSError(f"{run}: not a fitted run (no checkpoint.pt); --view needs --data DIR for a PLY")
     if camera is not None:
         cam, bg = load_camera_json(camera)
     elif data is not None:
@@ -107,6 +121,16 @@ def render(
     else:
         write_image(out, render_camera(gaussians, cam, bg))
         click.echo(f"Wrote {out}: {cam.width}x{cam.height} ({n} Gaussians)")
+
+
+def _render_run(run: Path, view: int, time_: float | None, dynamics: str, out: Path, device: str) -> None:
+    from causalgs import _ti
+    from causalgs.model.config import FitConfig
+    from causalgs.model.evaluate import render_view
+
+    _ti.init(device, FitConfig.load(run / "config.toml").precision)
+    image = render_view(run, view, time_, dynamics, out)
+    click.echo(f"Wrote {out}: view {view} at time {time_ or 0.0:g} ({image.shape[1]}x{image.shape[0]})")
 
 
 def _check_out(out: Path, turntable: int | None) -> None:

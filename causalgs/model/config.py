@@ -1,0 +1,168 @@
+"""The fit configuration: one dataclass per stage, nested, with documented defaults; unknown keys are refused.
+
+``FitConfig.preset("quick" | "full")`` gives the two presets; ``from_dict`` / ``to_dict`` round-trip through TOML
+(the resolved config is saved as ``config.toml`` in every run folder and read back by ``--resume``, ``predict``,
+``eval`` and ``render``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, get_type_hints
+
+import tomli_w
+import tomllib
+
+from causalgs.errors import CausalGSError
+from causalgs.io import write_text
+from causalgs.model.canonical import CanonicalConfig
+from causalgs.model.fields import FieldsConfig
+
+
+@dataclass
+class KinematicConfig:
+    """Training of the velocity field through renders of the RK2-integrated Gaussians."""
+
+    iterations: int = 1500
+    lr: float = 2e-3  # Adam, f_vel / f_neck / f_weight
+    lr_centres: float = 1e-3  # the pattern centres (metres)
+    window_start: int = 4  # frames in the trained window at the start of the curriculum
+    window_ramp: float = 0.6  # fraction of the iterations after which the window covers every training frame
+    views_per_iter: int = 2  # images rendered (and averaged in the loss) per iteration
+    substeps: int = 1  # RK2 steps per frame interval
+    lambda_dssim: float = 0.2
+    static_threshold: float = 0.01  # a Gaussian that moves less than this fraction of the scene size is static
+
+
+@dataclass
+class PhysicsConfig:
+    """The physical path: differentiable MPM from the inferred causes, trained through renders and consistency."""
+
+    enabled: bool = True
+    iterations: int = 60
+    res: int = 32  # grid cells along the side of the (cubic) simulation box
+    segment: int = 16  # substeps per checkpoint segment
+    budget: int = 1500  # dynamic Gaussians that are particles themselves (the rest follow their nearest particle)
+    capacity: int = 8192  # particle rows of the simulator's store (fixed, so kernels compile once)
+    effects: str = "gravity;ground;walls"  # the model's physics (a spec of causalgs.sim.effects)
+    learn: tuple[str, ...] = ("ground.mu",)  # effect parameters trained (names as in Effects.param_names)
+    ground: str = "auto"  # "auto": the ground plane's offset from the static Gaussians; "spec": as in effects
+    cfl: float = 0.4
+    max_substeps: int = 400  # per frame
+    lr_mat: float = 5e-3  # f_mat
+    lr_vel: float = 2e-4  # f_vel / f_neck / f_weight through the initial velocity
+    lr_effects: float = 2e-2
+    window_start: int = 8
+    window_ramp: float = 0.5
+    views_per_iter: int = 2
+    lambda_image: float = 1.0
+    lambda_consistency: float = 1.0  # on mean squared distance to the kinematic positions, in grid cells²
+
+
+@dataclass
+class FitConfig:
+    """Everything ``causalgs fit`` does; saved as ``config.toml`` with the run."""
+
+    preset: str = "quick"
+    seed: int = 0
+    precision: str = "float32"
+    init_points: int = 6000  # random initial cloud when the dataset has no points3d.ply
+    canonical: CanonicalConfig = field(default_factory=CanonicalConfig)
+    fields: FieldsConfig = field(default_factory=FieldsConfig)
+    kinematic: KinematicConfig = field(default_factory=KinematicConfig)
+    physics: PhysicsConfig = field(default_factory=PhysicsConfig)
+    checkpoint_seconds: float = 60.0  # a checkpoint at least this often within a stage, and at every stage end
+
+    @classmethod
+    def preset_config(cls, name: str) -> FitConfig:
+        """``quick``: a few minutes per scene on 2 CPU cores; ``full``: longer schedules for better numbers."""
+        if name not in PRESETS:
+            raise CausalGSError(f"unknown preset '{name}' (presets: {', '.join(PRESETS)})")
+        return from_dict(cls, {"preset": name, **PRESETS[name]})
+
+    def to_dict(self) -> dict:
+        return to_dict(self)
+
+    def save(self, path: str | Path) -> None:
+        write_text(path, tomli_w.dumps(to_dict(self)))
+
+    @classmethod
+    def load(cls, path: str | Path) -> FitConfig:
+        p = Path(path)
+        try:
+            d = tomllib.loads(p.read_text())
+        except FileNotFoundError:
+            raise CausalGSError(f"{p}: no such config file") from None
+        except tomllib.TOMLDecodeError as e:
+            raise CausalGSError(f"{p}: not valid TOML ({e})") from None
+        return from_dict(cls, d, where=str(p))
+
+
+PRESETS: dict[str, dict] = {
+    "quick": {
+        "canonical": {"iterations": 1500},
+        "kinematic": {"iterations": 1200},
+        "physics": {"iterations": 40},
+    },
+    "full": {
+        "canonical": {"iterations": 4000},
+        "kinematic": {"iterations": 3000},
+        "physics": {"iterations": 120, "budget": 3000},
+    },
+}
+
+
+def to_dict(obj) -> dict:
+    out = {}
+    for f in dataclasses.fields(obj):
+        if not f.init:
+            continue
+        v = getattr(obj, f.name)
+        if dataclasses.is_dataclass(v):
+            v = to_dict(v)
+        elif isinstance(v, tuple):
+            v = list(v)
+        if v is not None:
+            out[f.name] = v
+    return out
+
+
+def from_dict(cls, d: dict, where: str = "config"):
+    """Build dataclass ``cls`` from a nested dict, starting from its defaults; unknown keys are one-line errors."""
+    if not isinstance(d, dict):
+        raise CausalGSError(f"{where}: expected a table of settings, got {d!r}")
+    hints = get_type_hints(cls)
+    names = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(d) - set(names))
+    if unknown:
+        raise CausalGSError(f"{where}: unknown setting(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
+    kwargs: dict[str, Any] = {}
+    for k, v in d.items():
+        t = hints[k]
+        if dataclasses.is_dataclass(t):
+            kwargs[k] = from_dict(t, v, f"{where}.{k}")
+        elif isinstance(v, list):
+            kwargs[k] = tuple(v)
+        else:
+            kwargs[k] = v
+    try:
+        obj = cls(**kwargs)
+    except TypeError as e:
+        raise CausalGSError(f"{where}: {e}") from None
+    _check_types(obj, hints, where)
+    return obj
+
+
+def _check_types(obj, hints: dict, where: str) -> None:
+    for f in dataclasses.fields(obj):
+        v, t = getattr(obj, f.name), hints[f.name]
+        if t is bool and not isinstance(v, bool):
+            raise CausalGSError(f"{where}.{f.name} = {v!r} must be true or false")
+        if t is int and (isinstance(v, bool) or not isinstance(v, int)):
+            raise CausalGSError(f"{where}.{f.name} = {v!r} must be an integer")
+        if t is float and (isinstance(v, bool) or not isinstance(v, (int, float))):
+            raise CausalGSError(f"{where}.{f.name} = {v!r} must be a number")
+        if t is str and not isinstance(v, str):
+            raise CausalGSError(f"{where}.{f.name} = {v!r} must be a string")

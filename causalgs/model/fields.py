@@ -1,0 +1,181 @@
+"""Inverse physics: the neural fields that infer, for every particle, its physics code, motion and material.
+
+All of it is plain torch (no Taichi field is touched here; DESIGN.md "One path for the data"):
+
+- γ(p): positional encoding of a position normalised to the scene box, [u, sin(2^k π u), cos(2^k π u)];
+- z = f_vel(γ(p)): the latent physics code of the particle at canonical position p;
+- h = f_neck(z) ∈ Δ^K: a softmax over K motion patterns (a particle belongs to a mixture of patterns, so the patterns
+  act as soft objects and the clustering reads them directly);
+- W_t = f_weight(γ_t(t)) ∈ R^{K×6}: what each pattern does at time t, as a 6-DoF twist (3 linear + 3 angular);
+- v(p, t) = Σ_k h_k [u_k(t) + ω_k(t) × (p − c_k)]: the divergence-free 6-DoF basis B(p), with every pattern rotating
+  about its own learned centre c_k (not only the world origin);
+- m = f_mat(γ(p)): Young's modulus (log-space, bounded), Poisson ratio and density (bounded).
+
+The code z and the mixture h are computed once per particle at its canonical position (the particle carries its
+physics code, as a Lagrangian label), so integrating the motion costs O(N·K) per step and needs no network call:
+for particle i, v_i(x, t) = a_i(t) + ω_i(t) × x with a_i = Σ_k h_ik (u_k − ω_k × c_k) and ω_i = Σ_k h_ik ω_k.
+This is an exact rigid motion per pattern; the velocity Jacobian is [ω_i]×, which rotates the Gaussians.
+
+Bounds: E ∈ [E_min, E_max] in log space keeps the CFL step of the simulator within a known budget; nu ∈
+[nu_min, nu_max] stays away from the incompressible limit 0.5. Density defaults to a fixed value: with elastic
+forces, gravity and friction, video only constrains E/ρ, so learning both would be a flat direction.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from causalgs.errors import CausalGSError
+
+
+@dataclass
+class FieldsConfig:
+    """Sizes and bounds of the inverse-physics fields (all documented in the module docstring)."""
+
+    patterns: int = 16  # K motion patterns
+    code_dim: int = 32  # size of the physics code z
+    width: int = 64  # hidden width of every MLP
+    depth: int = 2  # hidden layers of every MLP
+    pos_freqs: int = 4  # frequencies of γ(p)
+    time_freqs: int = 4  # frequencies of γ_t(t)
+    E_range: tuple[float, float] = (2.0e3, 4.0e5)  # Pa
+    E_init: float = 2.0e4  # Pa, where f_mat starts
+    nu_range: tuple[float, float] = (0.1, 0.45)
+    nu_init: float = 0.3
+    density_range: tuple[float, float] = (1000.0, 1000.0)  # kg/m³; equal ends = fixed density
+
+    def __post_init__(self):
+        self.E_range = tuple(float(a) for a in self.E_range)
+        self.nu_range = tuple(float(a) for a in self.nu_range)
+        self.density_range = tuple(float(a) for a in self.density_range)
+        lo, hi = self.E_range
+        if not 0 < lo <= self.E_init <= hi:
+            raise CausalGSError(f"E_init = {self.E_init:g} must lie in E_range = [{lo:g}, {hi:g}] (positive)")
+        if not 0 <= self.nu_range[0] <= self.nu_init <= self.nu_range[1] < 0.5:
+            raise CausalGSError(f"nu_init = {self.nu_init} must lie in nu_range = {self.nu_range} within [0, 0.5)")
+        if not 0 < self.density_range[0] <= self.density_range[1]:
+            raise CausalGSError(f"density_range = {self.density_range} must be positive and ordered")
+        if self.patterns < 1 or self.code_dim < 1 or self.width < 1 or self.depth < 0:
+            raise CausalGSError("patterns, code_dim and width must be at least 1, depth at least 0")
+
+
+class Encoding(nn.Module):
+    """γ(p) = [u, sin(2^k π u), cos(2^k π u)]_{k<L} with u = (p − centre) / half_extent (the scene box to [-1, 1])."""
+
+    def __init__(self, freqs: int, dims: int, centre=None, half_extent=None):
+        super().__init__()
+        self.freqs, self.dims = int(freqs), int(dims)
+        self.register_buffer("centre", torch.zeros(dims) if centre is None else torch.as_tensor(centre).float())
+        self.register_buffer("half_extent", torch.ones(dims) if half_extent is None else torch.as_tensor(half_extent).float())
+        self.register_buffer("scales", math.pi * 2.0 ** torch.arange(self.freqs, dtype=torch.float32))
+
+    @property
+    def out_dim(self) -> int:
+        return self.dims * (1 + 2 * self.freqs)
+
+    def forward(self, p: torch.Tensor) -> torch.Tensor:
+        u = (p - self.centre.to(p.dtype)) / self.half_extent.to(p.dtype)
+        a = u[..., None] * self.scales.to(p.dtype)  # [..., D, L]
+        return torch.cat([u, a.sin().flatten(-2), a.cos().flatten(-2)], dim=-1)
+
+
+def mlp(n_in: int, n_out: int, width: int, depth: int) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    d = n_in
+    for _ in range(depth):
+        layers += [nn.Linear(d, width), nn.SiLU()]
+        d = width
+    layers.append(nn.Linear(d, n_out))
+    return nn.Sequential(*layers)
+
+
+def _logit(x: float) -> float:
+    x = min(max(x, 1e-4), 1 - 1e-4)
+    return math.log(x / (1 - x))
+
+
+class InversePhysics(nn.Module):
+    """f_vel, f_neck, f_weight, f_mat and the pattern centres c_k (see the module docstring).
+
+    ``lo, hi``: the scene box, used to normalise positions for γ(p) and to place the initial centres."""
+
+    def __init__(self, config: FieldsConfig, lo, hi, duration: float = 1.0):
+        super().__init__()
+        self.config = c = config
+        lo, hi = torch.as_tensor(lo, dtype=torch.float32), torch.as_tensor(hi, dtype=torch.float32)
+        centre, half = (lo + hi) / 2, ((hi - lo) / 2).clamp_min(1e-6)
+        self.enc = Encoding(c.pos_freqs, 3, centre, half)
+        # Time is normalised so the trained window maps to [0, 1]; extrapolation evaluates beyond it.
+        self.enc_t = Encoding(c.time_freqs, 1, torch.zeros(1), torch.tensor([max(duration, 1e-6)]))
+        self.f_vel = mlp(self.enc.out_dim, c.code_dim, c.width, c.depth)
+        self.f_neck = mlp(c.code_dim, c.patterns, c.width, 0)
+        self.f_weight = mlp(self.enc_t.out_dim, c.patterns * 6, c.width, c.depth)
+        self.f_mat = mlp(self.enc.out_dim, 3, c.width, c.depth)
+        # Start at rest (zero twists) and at E_init / nu_init everywhere.
+        with torch.no_grad():
+            self.f_weight[-1].weight.mul_(0.01)
+            self.f_weight[-1].bias.zero_()
+            last = self.f_mat[-1]
+            last.weight.mul_(0.01)
+            logE = [math.log(a) for a in c.E_range]
+            span = max(logE[1] - logE[0], 1e-12)
+            nu_span = max(c.nu_range[1] - c.nu_range[0], 1e-12)
+            last.bias.copy_(torch.tensor([
+                _logit((math.log(c.E_init) - logE[0]) / span), _logit((c.nu_init - c.nu_range[0]) / nu_span), 0.0
+            ]))  # fmt: skip
+        g = torch.Generator().manual_seed(0)
+        self.centres = nn.Parameter(centre + (torch.rand(c.patterns, 3, generator=g) - 0.5) * half)
+
+    # -- per particle ----------------------------------------------------------------------------------------------
+    def code(self, p: torch.Tensor) -> torch.Tensor:
+        """z = f_vel(γ(p)) [N, code_dim]."""
+        return self.f_vel(self.enc(p))
+
+    def mixture(self, z: torch.Tensor) -> torch.Tensor:
+        """h = softmax(f_neck(z)) [N, K]."""
+        return torch.softmax(self.f_neck(z), dim=-1)
+
+    def materials(self, p: torch.Tensor) -> dict[str, torch.Tensor]:
+        """E, nu, density [N] from f_mat(γ(p)), each inside its configured range."""
+        c = self.config
+        s = torch.sigmoid(self.f_mat(self.enc(p)))
+        logE0, logE1 = math.log(c.E_range[0]), math.log(c.E_range[1])
+        return {
+            "E": torch.exp(logE0 + s[:, 0] * (logE1 - logE0)),
+            "nu": c.nu_range[0] + s[:, 1] * (c.nu_range[1] - c.nu_range[0]),
+            "density": c.density_range[0] + s[:, 2] * (c.density_range[1] - c.density_range[0]),
+        }
+
+    # -- per time ---------------------------------------------------------------------------------------------------
+    def twists(self, t: torch.Tensor) -> torch.Tensor:
+        """W_t = f_weight(γ_t(t)) [T, K, 6]: linear (u) then angular (ω) velocity of every pattern."""
+        t = torch.as_tensor(t, dtype=self.centres.dtype).reshape(-1, 1)
+        return self.f_weight(self.enc_t(t)).reshape(len(t), self.config.patterns, 6)
+
+    def affine(self, h: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-particle velocity field at times t: v_i(x, t) = a[t, i] + ω[t, i] × x. Returns a, ω [T, N, 3]."""
+        W = self.twists(t)
+        u, w = W[..., :3], W[..., 3:]
+        a_k = u - torch.linalg.cross(w, self.centres.expand_as(w))  # u_k − ω_k × c_k
+        return torch.einsum("nk,tkd->tnd", h, a_k), torch.einsum("nk,tkd->tnd", h, w)
+
+    def velocity(self, p: torch.Tensor, t: float, h: torch.Tensor | None = None) -> torch.Tensor:
+        """v(p, t) [N, 3] for particles at p whose mixtures are h (default: computed at p, i.e. canonical p)."""
+        if h is None:
+            h = self.mixture(self.code(p))
+        a, w = self.affine(h, torch.tensor([float(t)]))
+        return a[0] + torch.linalg.cross(w[0], p)
+
+
+def basis(p: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
+    """B(p) [N, 6, 3]: the six divergence-free velocity fields e_x, e_y, e_z (translations) and e_k × (p − c)
+    (rotations about ``centre``). v = V · B(p) for a twist V ∈ R^6; used by tests and analysis, the integrator uses
+    the equivalent affine form."""
+    r = p - centre
+    eye = torch.eye(3, dtype=p.dtype).expand(len(p), 3, 3)
+    rot = torch.linalg.cross(torch.eye(3, dtype=p.dtype)[None].expand(len(p), 3, 3), r[:, None, :].expand(-1, 3, -1))
+    return torch.cat([eye, rot], dim=1)

@@ -1,0 +1,379 @@
+"""``causalgs fit``: learn a scene from multi-view video, in three stages, with checkpoints and resume.
+
+1. **canonical**: 3DGS on the t = 0 training images (densification, pruning; :mod:`causalgs.model.canonical`);
+2. **kinematic**: the inverse-physics fields learn the velocity field through renders of the RK2-integrated
+   Gaussians, on a time window that widens from ``window_start`` frames to every observed frame; at the end Gaussians
+   that never move are frozen as static background and the model as it stands is kept as ``kinematic.pt``, the
+   kinematic-only model (trained without the physical path) that evaluation compares against;
+3. **physics**: the dynamic Gaussians become MPM particles; renders of the simulated state and the distance between
+   simulated and kinematic positions at frame times train f_mat (materials), the fields through the initial velocity,
+   and the learned effect parameters, through the checkpointed Taichi backward.
+
+Run folder: ``config.toml`` (resolved), ``run.json`` (data path, stage times), ``log.jsonl`` (one line per
+iteration), ``losses.png``, ``checkpoint.pt`` (rewritten atomically at least every ``checkpoint_seconds`` and
+at every stage end), ``kinematic.pt``, ``gaussians.ply`` (canonical 3DGS PLY) and ``physics.npz``.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from causalgs import _ti
+from causalgs.dataset import Dataset, Frame, load_dataset
+from causalgs.errors import CausalGSError
+from causalgs.io import read_json, write_bytes, write_json
+from causalgs.metrics import ssim
+from causalgs.model.canonical import train_canonical
+from causalgs.model.config import FitConfig
+from causalgs.model.gaussians import Gaussians
+from causalgs.model.scene import CausalGS, scene_bounds
+from causalgs.model.timeline import Timeline
+from causalgs.sim.effects import REGISTRY
+
+STAGES = ("canonical", "kinematic", "physics", "done")
+
+
+def image_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_dssim: float) -> torch.Tensor:
+    """L1 + λ·(1 − SSIM), the 3DGS photometric loss."""
+    return (1 - lambda_dssim) * (pred - gt).abs().mean() + lambda_dssim * (1 - ssim(pred, gt))
+
+
+def _finite(loss: torch.Tensor, stage: str, it: int) -> None:
+    if not bool(torch.isfinite(loss)):
+        raise CausalGSError(f"{stage} stage: the loss became {float(loss)} at iteration {it}; lower the learning rate")
+
+
+class Run:
+    """A run folder: paths, the JSONL log and checkpoints."""
+
+    def __init__(self, out: Path):
+        self.out = Path(out)
+        self.config_path = self.out / "config.toml"
+        self.info_path = self.out / "run.json"
+        self.log_path = self.out / "log.jsonl"
+        self.checkpoint_path = self.out / "checkpoint.pt"
+
+    def log(self, record: dict) -> None:
+        with open(self.log_path, "a") as f:
+            f.write(json.dumps(record) + "\n")
+
+    def truncate_log(self, stage: str, it: int) -> None:
+        """Drop log lines written after the checkpoint being resumed (they will be written again)."""
+        if not self.log_path.exists():
+            return
+        order = STAGES.index(stage)
+        keep = []
+        for line in self.log_path.read_text().splitlines():
+            r = json.loads(line)
+            s = STAGES.index(r["stage"])
+            if s < order or (s == order and r["it"] <= it):
+                keep.append(line)
+        write_bytes(self.log_path, ("\n".join(keep) + "\n" if keep else "").encode())
+
+    def save(self, payload: dict, path: Path | None = None) -> None:
+        buf = io.BytesIO()
+        torch.save(payload, buf)
+        write_bytes(path or self.checkpoint_path, buf.getvalue())
+
+    def load(self, path: Path | None = None) -> dict:
+        p = path or self.checkpoint_path
+        try:
+            return torch.load(p, weights_only=False)
+        except FileNotFoundError:
+            raise CausalGSError(f"{p}: no checkpoint to resume from") from None
+        except Exception as e:  # a truncated or foreign file
+            raise CausalGSError(f"{p}: not a readable causalgs checkpoint ({type(e).__name__})") from None
+
+
+def initial_gaussians(data: Dataset, config: FitConfig) -> Gaussians:
+    deg = config.canonical.sh_degree
+    if data.points is not None and len(data.points) > 0:
+        return Gaussians.from_points(data.points, data.point_colors, sh_degree=deg)
+    centres = np.stack([f.camera.center for f in data.train])
+    lo, hi = centres.min(0), centres.max(0)
+    mid, half = (lo + hi) / 2, 0.35 * float((hi - lo).max())
+    return Gaussians.random(config.init_points, mid - half, mid + half, seed=config.seed, sh_degree=deg)
+
+
+class Trainer:
+    """Runs the stages of a fit; every stage can be resumed from the checkpoint it last wrote."""
+
+    def __init__(self, data: Dataset, run: Run, config: FitConfig, progress: Callable | None = None):
+        self.data, self.run, self.config = data, run, config
+        self.timeline = Timeline.of(data)
+        self.train = self.timeline.by_frame(data.train)
+        self.bg = tuple(float(b) for b in data.background)
+        self.progress = progress or (lambda *a, **k: None)
+        self.rng = np.random.default_rng(config.seed)
+        self.model: CausalGS | None = None
+        self.stage_seconds: dict[str, float] = {}
+        self._last_save = time.monotonic()
+
+    # -- shared -----------------------------------------------------------------------------------------------------
+    def _gt(self, frame: Frame) -> torch.Tensor:
+        return torch.from_numpy(frame.image).to(_ti.torch_dtype())
+
+    def _sample(self, window: int, count: int, lowest: int = 0) -> list[tuple[int, Frame]]:
+        keys = [k for k in self.train if lowest <= k < window]
+        out = []
+        for _ in range(count):
+            k = keys[int(self.rng.integers(len(keys)))]
+            frames = self.train[k]
+            out.append((k, frames[int(self.rng.integers(len(frames)))]))
+        return out
+
+    def _window(self, it: int, iterations: int, start: int, ramp: float) -> int:
+        n = self.timeline.train_frames
+        frac = min(1.0, it / max(1.0, ramp * iterations))
+        return int(min(n, max(2, round(start + frac * (n - start)))))
+
+    def _payload(self, stage: str, it: int, optimizer=None) -> dict:
+        return {
+            "stage": stage,
+            "it": it,
+            "model": self.model.state_dict() if self.model is not None else None,
+            "gaussians": self.gaussians.state_dict() if stage == "canonical" else None,
+            "optimizer": optimizer.state_dict() if optimizer is not None else None,
+            "rng": self.rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(),
+            "stage_seconds": self.stage_seconds,
+        }
+
+    def _maybe_save(self, stage: str, it: int, optimizer, force: bool = False) -> None:
+        if force or time.monotonic() - self._last_save > self.config.checkpoint_seconds:
+            self.run.save(self._payload(stage, it, optimizer))
+            self._last_save = time.monotonic()
+
+    def _new_model(self) -> CausalGS:
+        means = self.gaussians.means.detach().double().numpy()
+        lo, hi = scene_bounds(means)
+        for p in self.gaussians.parameters():
+            p.requires_grad_(False)
+        return CausalGS(self.config, self.gaussians, lo, hi, self.timeline.fps, self.timeline.train_frames)
+
+    # -- entry ------------------------------------------------------------------------------------------------------
+    def fit(self, resume: dict | None = None) -> CausalGS:
+        start_stage, start_it, opt_state = "canonical", 0, None
+        if resume is not None:
+            start_stage, start_it, opt_state = resume["stage"], resume["it"], resume["optimizer"]
+            self.rng.bit_generator.state = resume["rng"]
+            torch.set_rng_state(resume["torch_rng"])
+            self.stage_seconds = dict(resume.get("stage_seconds", {}))
+            self.run.truncate_log(start_stage, start_it)
+        order = STAGES.index(start_stage)
+        if order == 0:
+            self.gaussians = initial_gaussians(self.data, self.config)
+            self._canonical()
+            start_it, opt_state = 0, None
+        else:
+            self.gaussians = Gaussians.from_points(np.zeros((1, 3)), sh_degree=self.config.canonical.sh_degree)
+            self.model = self._new_model()
+            self.model.load_state_dict(resume["model"])
+            self.gaussians = self.model.gaussians
+        if self.model is None:
+            self.model = self._new_model()
+        if order <= 1:
+            self._kinematic(start_it if order == 1 else 0, opt_state if order == 1 else None)
+            start_it, opt_state = 0, None
+        if order <= 2 and self.config.physics.enabled:
+            self._physics(start_it if order == 2 else 0, opt_state if order == 2 else None)
+        self.run.save(self._payload("done", 0))
+        return self.model
+
+    # -- stages -----------------------------------------------------------------------------------------------------
+    def _canonical(self) -> None:
+        t0 = time.monotonic()
+        frames = self.train.get(0)
+        if not frames:
+            raise CausalGSError(f"{self.data.root}: no training image at the first frame time (t = 0)")
+        cfg = self.config.canonical
+
+        def log(rec: dict) -> None:
+            self.run.log({"stage": "canonical", **rec})
+
+        def progress(step, total, losses):
+            self.progress("canonical", step, total, losses)
+
+        self.gaussians = train_canonical(self.gaussians, frames, cfg, progress=progress, log=log)
+        self.stage_seconds["canonical"] = time.monotonic() - t0
+        self.model = self._new_model()
+        self.run.save(self._payload("kinematic", 0))
+
+    def _kinematic(self, start: int, opt_state) -> None:
+        t0 = time.monotonic() - self.stage_seconds.get("kinematic", 0.0)
+        m, kc = self.model, self.config.kinematic
+        f = m.fields
+        nets = [*f.f_vel.parameters(), *f.f_neck.parameters(), *f.f_weight.parameters()]
+        opt = torch.optim.Adam([{"params": nets, "lr": kc.lr}, {"params": [f.centres], "lr": kc.lr_centres}])
+        if opt_state is not None:
+            opt.load_state_dict(opt_state)
+        for it in range(start, kc.iterations):
+            window = self._window(it, kc.iterations, kc.window_start, kc.window_ramp)
+            picks = self._sample(window, kc.views_per_iter)
+            steps = max(k for k, _ in picks)
+            means, quats = m.kinematic(steps)
+            loss = 0.0
+            for k, frame in picks:
+                img, _, _ = m.gaussians.render(frame.camera, self.bg, means=means[k], quats=quats[k])
+                loss = loss + image_loss(img, self._gt(frame), kc.lambda_dssim) / len(picks)
+            _finite(loss, "kinematic", it)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            rec = {"stage": "kinematic", "it": it + 1, "loss": float(loss), "window": window}
+            self.run.log(rec)
+            self.progress("kinematic", it + 1, kc.iterations, rec)
+            self.stage_seconds["kinematic"] = time.monotonic() - t0
+            self._maybe_save("kinematic", it + 1, opt, force=it + 1 == kc.iterations)
+        self._split_static()
+        self.stage_seconds["kinematic"] = time.monotonic() - t0
+        self.run.save(self._payload("physics", 0))
+        self.run.save(self._payload("physics", 0), self.run.out / "kinematic.pt")
+
+    def _split_static(self) -> None:
+        m = self.model
+        with torch.no_grad():
+            m.dynamic.fill_(True)
+            traj, _ = m.kinematic(self.timeline.train_frames - 1, rotations=False)
+            disp = (traj - traj[:1]).norm(dim=-1).max(0).values
+            size = float((m.hi - m.lo).max())
+            m.dynamic.copy_(disp > self.config.kinematic.static_threshold * size)
+        self.run.log({"stage": "kinematic", "it": self.config.kinematic.iterations, "dynamic": int(m.dynamic.sum()),
+                      "static": int((~m.dynamic).sum())})  # fmt: skip
+
+    def _physics(self, start: int, opt_state) -> None:
+        t0 = time.monotonic() - self.stage_seconds.get("physics", 0.0)
+        m, pc = self.model, self.config.physics
+        if m.particles is None:
+            m.build_physics(seed=self.config.seed)
+            names = m.simulator().effects.param_names()
+            effects = dict(zip(names, m.effect_params.tolist(), strict=True))
+            self.run.log({"stage": "physics", "it": 0, "particles": len(m.particles), "box": m.box.tolist(),
+                          "effects": effects})  # fmt: skip
+        f = m.fields
+        mask = m.learn_mask()
+        nets = [*f.f_vel.parameters(), *f.f_neck.parameters(), *f.f_weight.parameters()]
+        opt = torch.optim.Adam([
+            {"params": list(f.f_mat.parameters()), "lr": pc.lr_mat},
+            {"params": nets, "lr": pc.lr_vel},
+            {"params": [m.effect_params], "lr": pc.lr_effects},
+        ])  # fmt: skip
+        if opt_state is not None:
+            opt.load_state_dict(opt_state)
+        dx = float((m.box[1] - m.box[0]).max()) / pc.res
+        for it in range(start, pc.iterations):
+            window = self._window(it, pc.iterations, pc.window_start, pc.window_ramp)
+            frames = list(range(1, window))
+            out = m.simulate(frames)
+            with torch.no_grad():
+                target, _ = _particle_kinematics(m, out["h"].detach(), out["x0"].detach(), window - 1)
+            cons = ((out["x"] - target[1:].to(out["x"].dtype)) ** 2).sum(-1).mean() / dx**2
+            picks = self._sample(window, pc.views_per_iter, lowest=1)
+            img_loss = 0.0
+            for k, frame in picks:
+                (state,) = m.physical_states(out["x"][k - 1 : k], out["F"][k - 1 : k])
+                img, _, _ = m.render(state, frame.camera, self.bg)
+                img_loss = img_loss + image_loss(img, self._gt(frame), self.config.kinematic.lambda_dssim) / len(picks)
+            loss = pc.lambda_image * img_loss + pc.lambda_consistency * cons
+            _finite(loss, "physics", it)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            if m.effect_params.grad is not None:
+                m.effect_params.grad[~mask] = 0.0
+            opt.step()
+            with torch.no_grad():  # keep the friction coefficient and the like inside their bounds
+                m.effect_params.copy_(torch.as_tensor(_clamped(m, m.effect_params.detach().numpy())))
+            rec = {"stage": "physics", "it": it + 1, "loss": float(loss), "image": float(img_loss),
+                   "consistency": float(cons), "window": window, "E_median": float(out["E"].median()),
+                   "nu_median": float(out["nu"].median()),
+                   **{n: float(v) for n, v, k in zip(m.simulator().effects.param_names(), m.effect_params.tolist(),
+                                                     mask.tolist(), strict=True) if k}}  # fmt: skip
+            self.run.log(rec)
+            self.progress("physics", it + 1, pc.iterations, rec)
+            self.stage_seconds["physics"] = time.monotonic() - t0
+            self._maybe_save("physics", it + 1, opt, force=it + 1 == pc.iterations)
+        self.stage_seconds["physics"] = time.monotonic() - t0
+
+
+def _clamped(m: CausalGS, values: np.ndarray) -> np.ndarray:
+    """Effect parameters raised to their registry lower bounds (a friction coefficient never goes negative)."""
+    out = values.copy()
+    for i, name in enumerate(m.simulator().effects.param_names()):
+        effect, param = name.split("[")[0].split(".")
+        lower = REGISTRY[effect].param(param).lower
+        if lower is not None:
+            out[i] = max(out[i], lower)
+    return out
+
+
+def _particle_kinematics(m: CausalGS, h, x0, steps: int):
+    from causalgs.model.kinematic import integrate
+
+    return integrate(m.fields, h, x0, None, steps, 1.0 / m.fps, m.config.kinematic.substeps)
+
+
+def fit(data_dir, out, config: FitConfig | None = None, *, resume: bool = False, progress=None) -> CausalGS:
+    """Fit a scene (see the module docstring). With ``resume`` the run folder's config and checkpoint are used."""
+    out = Path(out)
+    run = Run(out)
+    state = None
+    if resume:
+        config = FitConfig.load(run.config_path)
+        info = read_json(run.info_path, "run info")
+        data_dir = info["data"]
+        state = run.load()
+    elif config is None:
+        config = FitConfig.preset_config("quick")
+    data = load_dataset(data_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if not resume:
+        if run.checkpoint_path.exists():
+            raise CausalGSError(f"{out} already holds a run: use --resume to continue it or choose another --out")
+        run.log_path.unlink(missing_ok=True)
+        config.save(run.config_path)
+    torch.manual_seed(config.seed)
+    trainer = Trainer(data, run, config, progress)
+    write_json(run.info_path, {"data": str(Path(data_dir).resolve()), "status": "running",
+                               "fps": trainer.timeline.fps, "train_frames": trainer.timeline.train_frames})  # fmt: skip
+    if state is not None and state["stage"] == "done":
+        model = _load_model(trainer, state)
+    else:
+        model = trainer.fit(state)
+    from causalgs.model.export import export_run
+
+    export_run(model, out)
+    write_json(run.info_path, {"data": str(Path(data_dir).resolve()), "status": "done",
+                               "fps": trainer.timeline.fps, "train_frames": trainer.timeline.train_frames,
+                               "stage_seconds": trainer.stage_seconds,
+                               "total_seconds": sum(trainer.stage_seconds.values())})  # fmt: skip
+    return model
+
+
+def _load_model(trainer: Trainer, state: dict) -> CausalGS:
+    trainer.gaussians = Gaussians.from_points(np.zeros((1, 3)), sh_degree=trainer.config.canonical.sh_degree)
+    trainer.model = trainer._new_model()
+    trainer.model.load_state_dict(state["model"])
+    trainer.stage_seconds = dict(state.get("stage_seconds", {}))
+    return trainer.model
+
+
+def load_model(run_dir, which: str = "checkpoint.pt") -> tuple[CausalGS, Dataset, Timeline]:
+    """The trained model of a run folder (``which``: checkpoint.pt or kinematic.pt), its dataset and timeline."""
+    run = Run(Path(run_dir))
+    config = FitConfig.load(run.config_path)
+    info = read_json(run.info_path, "run info")
+    data = load_dataset(info["data"])
+    state = run.load(run.out / which)
+    if state.get("model") is None:
+        raise CausalGSError(f"{run.out / which}: the fit has not reached the dynamic stages yet")
+    trainer = Trainer(data, run, config)
+    model = _load_model(trainer, state)
+    model.eval()
+    return model, data, trainer.timeline

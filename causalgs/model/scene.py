@@ -1,0 +1,238 @@
+"""The CausalGS scene model: canonical Gaussians + inverse-physics fields + (once built) the simulated particles.
+
+It answers one question for the rest of the program: *where is every Gaussian at frame k*, by either dynamics path:
+
+- ``kinematic(steps)``: RK2 integration of the inferred velocity field (all Gaussians that are not static);
+- ``simulate(frames)``: the differentiable MPM from the inferred causes (initial velocity from the kinematic field at
+  t = 0, materials from f_mat, the configured effects with their learned parameters); dynamic Gaussians follow the
+  particles' displacement and deformation (Σ = F Σ Fᵀ).
+
+and renders a state from a camera. Time is in frames of the dataset (seconds = frame / fps).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from causalgs import _ti
+from causalgs.errors import CausalGSError
+from causalgs.model.config import FitConfig
+from causalgs.model.fields import InversePhysics
+from causalgs.model.gaussians import Gaussians
+from causalgs.model.kinematic import integrate
+from causalgs.model.particles import Particles, build_particles
+from causalgs.render.reference import quat_scale_to_cov
+from causalgs.sim.autograd import deformed_covariance, simulate
+from causalgs.sim.effects import WALL_BAND, Effects
+from causalgs.sim.mpm import SimConfig, Simulator, segment_specs
+from causalgs.store import ParticleStore
+
+
+@dataclass
+class State:
+    """Gaussians at one time: means [N, 3] and either quats [N, 4] (kinematic) or covs [N, 3, 3] (simulated)."""
+
+    means: torch.Tensor
+    quats: torch.Tensor | None = None
+    covs: torch.Tensor | None = None
+
+    def overrides(self) -> dict:
+        out = {"means": self.means}
+        if self.covs is not None:
+            out["covs"] = self.covs
+        elif self.quats is not None:
+            out["quats"] = self.quats
+        return out
+
+
+_STORES: dict = {}
+
+
+def _sim_store(capacity: int, segment: int) -> ParticleStore:
+    """One simulator store per (runtime, capacity): every new store is a new compile of every MPM kernel."""
+    key = (_ti.generation(), capacity, segment)
+    if key not in _STORES:
+        _STORES.clear()
+        store = ParticleStore(capacity, sh_degree=0)
+        store.add_fields(segment_specs(segment))
+        _STORES[key] = store
+    return _STORES[key]
+
+
+class CausalGS(torch.nn.Module):
+    """See the module docstring. ``fps`` converts frames to seconds; ``lo, hi`` bound the scene."""
+
+    def __init__(self, config: FitConfig, gaussians: Gaussians, lo, hi, fps: float, train_frames: int):
+        super().__init__()
+        self.config = config
+        self.gaussians = gaussians
+        self.fps = float(fps)
+        self.train_frames = int(train_frames)  # frames 0..train_frames-1 are observed
+        self.fields = InversePhysics(config.fields, lo, hi, duration=(train_frames - 1) / fps)
+        self.register_buffer("lo", torch.as_tensor(lo, dtype=torch.float64))
+        self.register_buffer("hi", torch.as_tensor(hi, dtype=torch.float64))
+        self.register_buffer("dynamic", torch.ones(gaussians.n, dtype=torch.bool))
+        self.register_buffer("box", torch.zeros(2, 3, dtype=torch.float64))  # simulation box lo, hi (0 = unset)
+        self.effect_params = torch.nn.Parameter(torch.zeros(0, dtype=torch.float64))
+        self.particles: Particles | None = None
+        self._sim: Simulator | None = None
+
+    # -- persistence ------------------------------------------------------------------------------------------------
+    def get_extra_state(self) -> dict:
+        return {"particles": None if self.particles is None else self.particles.state_dict()}
+
+    def set_extra_state(self, state: dict) -> None:
+        p = state.get("particles")
+        self.particles = None if p is None else Particles.from_state_dict(p)
+        self._sim = None
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # Buffers and parameters whose size depends on the data (Gaussian count, effect count): take the saved size.
+        for name in ("dynamic", "effect_params"):
+            key = prefix + name
+            if key in state_dict and state_dict[key].shape != getattr(self, name).shape:
+                old = getattr(self, name)
+                new = torch.empty_like(state_dict[key], dtype=old.dtype)
+                if isinstance(old, torch.nn.Parameter):
+                    self.effect_params = torch.nn.Parameter(new)
+                else:
+                    self.register_buffer(name, new)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    # -- kinematic path ---------------------------------------------------------------------------------------------
+    def mixtures(self, x: torch.Tensor) -> torch.Tensor:
+        return self.fields.mixture(self.fields.code(x))
+
+    def kinematic(self, steps: int, *, rotations: bool = True, index: torch.Tensor | None = None):
+        """Means [steps + 1, N, 3] and quats [steps + 1, N, 4] at frames 0..steps; Gaussians not in ``index``
+        (default: the dynamic ones) stay at their canonical state."""
+        g = self.gaussians
+        idx = torch.nonzero(self.dynamic).flatten() if index is None else index
+        x0 = g.means[idx]
+        h = self.mixtures(x0.detach())
+        xs, qs = integrate(self.fields, h, x0, g.quats[idx] if rotations else None, steps, 1.0 / self.fps,
+                           self.config.kinematic.substeps)  # fmt: skip
+        means = g.means[None].expand(steps + 1, -1, -1).clone()
+        means[:, idx] = xs.to(means.dtype)
+        quats = None
+        if qs is not None:
+            quats = g.quats[None].expand(steps + 1, -1, -1).clone()
+            quats[:, idx] = qs.to(quats.dtype)
+        return means, quats
+
+    def kinematic_state(self, frame: int) -> State:
+        means, quats = self.kinematic(int(frame))
+        return State(means[-1], quats[-1])
+
+    # -- physical path ----------------------------------------------------------------------------------------------
+    def simulator(self) -> Simulator:
+        if self.particles is None:
+            raise CausalGSError("this model has no simulated particles yet (the physical stage has not run)")
+        if self._sim is None:
+            pc = self.config.physics
+            lo, hi = self.box.tolist()
+            store = _sim_store(pc.capacity, pc.segment)
+            cfg = SimConfig(res=pc.res, lo=tuple(lo), hi=tuple(hi), segment=pc.segment, cfl=pc.cfl,
+                            max_substeps=pc.max_substeps * 64, material="neo_hookean", effects=pc.effects)  # fmt: skip
+            sim = Simulator(store, cfg)
+            store.resize(len(self.particles))
+            store.from_torch("vol", self.particles.vol.to(_ti.torch_dtype()))
+            if len(self.effect_params) != len(sim.effects.param_names()):
+                raise CausalGSError("the model's effect parameters do not match its effects spec")
+            self._sim = sim
+        return self._sim
+
+    def build_physics(self, seed: int = 0) -> None:
+        """Choose the simulation box, the ground plane and the particles (after the kinematic stage, which decides
+        which Gaussians are dynamic and how far they travel)."""
+        pc = self.config.physics
+        g = self.gaussians
+        means = g.means.detach().double()
+        dyn = self.dynamic
+        if not bool(dyn.any()):
+            raise CausalGSError("no dynamic Gaussians: the kinematic stage found nothing that moves")
+        with torch.no_grad():
+            traj, _ = self.kinematic(self.train_frames - 1, rotations=False)
+        moving = traj[:, dyn].double().reshape(-1, 3)
+        static = means[~dyn]
+        effects = Effects.from_spec(pc.effects)
+        names = effects.param_names()
+        flat = effects.flat()
+        ground_z = None
+        if "ground.d" in names and pc.ground == "auto":
+            # The ground plane under the moving Gaussians: the static Gaussians at or below their lowest point.
+            low = float(moving[:, 2].min())
+            floor = static[:, 2][static[:, 2] <= low + 0.02 * float((self.hi - self.lo).max())]
+            ground_z = float(floor.median()) if len(floor) >= 10 else low
+            flat[names.index("ground.d")] = ground_z
+        lo = torch.minimum(moving.min(0).values, static.min(0).values if len(static) else moving.min(0).values)
+        hi = torch.maximum(moving.max(0).values, static.max(0).values if len(static) else moving.max(0).values)
+        if len(static):  # the static scene's footprint in x, y (the floor, the room): the simulation covers it
+            lo[:2] = torch.minimum(moving[:, :2].min(0).values, static[:, :2].min(0).values)
+            hi[:2] = torch.maximum(moving[:, :2].max(0).values, static[:, :2].max(0).values)
+        lo[2] = moving[:, 2].min() if ground_z is None else ground_z
+        hi[2] = moving[:, 2].max()
+        side = float((hi - lo).max())
+        dx = side / (pc.res - 2 * (WALL_BAND + 1))
+        centre = (lo + hi) / 2
+        box_lo = centre - 0.5 * pc.res * dx
+        box_lo[2] = lo[2] - (WALL_BAND + 0.5) * dx  # the ground plane just above the bottom wall band
+        self.box.copy_(torch.stack([box_lo, box_lo + pc.res * dx]))
+        self.effect_params = torch.nn.Parameter(torch.as_tensor(flat, dtype=torch.float64))
+        self.particles = build_particles(means.numpy(), dyn.numpy(), box_lo.numpy(), dx, pc.budget, pc.capacity, seed)
+        self._sim = None
+
+    def learn_mask(self) -> torch.Tensor:
+        """Which entries of the effect parameters are trained (``physics.learn``)."""
+        names = Effects.from_spec(self.config.physics.effects).param_names()
+        unknown = [n for n in self.config.physics.learn if n not in names]
+        if unknown:
+            raise CausalGSError(f"physics.learn names {', '.join(unknown)}; the effects have {', '.join(names)}")
+        return torch.tensor([n in self.config.physics.learn for n in names], dtype=torch.bool)
+
+    def causes(self) -> dict[str, torch.Tensor]:
+        """Initial velocity and materials of every particle (differentiable in the fields)."""
+        p = self.particles
+        x0 = p.x0.to(self.fields.centres.dtype)
+        h = self.mixtures(x0)
+        v0 = self.fields.velocity(x0, 0.0, h)
+        return {"x0": x0, "v0": v0, "h": h, **self.fields.materials(x0)}
+
+    def simulate(self, frames) -> dict[str, torch.Tensor]:
+        """Particle x, F [T, P, ...] at the given frame indices (sorted, ≥ 0) through the differentiable MPM."""
+        sim = self.simulator()
+        c = self.causes()
+        dt = _ti.torch_dtype()
+        times = [float(f) / self.fps for f in frames]
+        x, v, F = simulate(sim, c["x0"].to(dt), c["v0"].to(dt), c["E"].to(dt), c["nu"].to(dt), c["density"].to(dt),
+                           times, self.effect_params.to(dt))  # fmt: skip
+        return {"x": x, "v": v, "F": F, **c}
+
+    def physical_states(self, x: torch.Tensor, F: torch.Tensor) -> list[State]:
+        """Gaussian states (means, covariances) for simulated particle states x [T, P, 3], F [T, P, 3, 3]."""
+        g, p = self.gaussians, self.particles
+        scales = torch.exp(g.scales)
+        cov0 = quat_scale_to_cov(g.quats, scales)
+        dyn = p.dynamic
+        out = []
+        for k in range(len(x)):
+            means = g.means.clone()
+            covs = cov0.clone()
+            Fc = F[k][p.carrier].to(means.dtype)
+            means[dyn] = p.carry(x[k], F[k]).to(means.dtype)
+            covs[dyn] = deformed_covariance(Fc, g.quats[dyn], scales[dyn])
+            out.append(State(means, covs=covs))
+        return out
+
+    # -- rendering --------------------------------------------------------------------------------------------------
+    def render(self, state: State, camera, background):
+        return self.gaussians.render(camera, tuple(float(b) for b in background), **state.overrides())
+
+
+def scene_bounds(points: np.ndarray, margin: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    lo, hi = points.min(0), points.max(0)
+    pad = margin * float((hi - lo).max())
+    return lo - pad, hi + pad

@@ -1,0 +1,174 @@
+"""``causalgs fit``, ``predict`` and ``eval``: parse options, build the config, call the library, report."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from causalgs.errors import CausalGSError
+from cli.options import device_option, seed_option
+
+
+def _progress_callbacks(enabled: bool = True):
+    """A rich progress bar with one task per stage; returns (callback, context manager)."""
+    from causalgs.progress import progress_bar
+
+    bar = progress_bar(enabled)
+    tasks: dict[str, int] = {}
+
+    def update(stage: str, step: int, total: int, losses: dict) -> None:
+        if stage not in tasks:
+            tasks[stage] = bar.add_task(stage, total=total)
+        loss = losses.get("loss")
+        desc = f"{stage} loss {loss:.4f}" if isinstance(loss, float) else stage
+        bar.update(tasks[stage], completed=step, total=total, description=desc)
+
+    return update, bar
+
+
+@click.command()
+@click.argument("data", type=click.Path(path_type=Path))
+@click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), required=True,
+              help="Run folder: config.toml, log.jsonl, losses.png, checkpoints, gaussians.ply, physics.npz.")
+@click.option("--preset", type=click.Choice(["quick", "full"]), default="quick", show_default=True,
+              help="quick: minutes per scene on a laptop CPU; full: longer schedules.")
+@click.option("--config", "config_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="A config.toml (e.g. a previous run's) used instead of the preset.")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+              help="Override one setting, e.g. --set physics.iterations=20 --set physics.effects='gravity;ground'.")
+@click.option("--no-physics", is_flag=True, help="Skip the physical stage (a kinematic-only model).")
+@click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
+@seed_option
+@device_option
+def fit(data, out, preset, config_path, overrides, no_physics, resume, seed, device):
+    """Learn the scene in DATA (a D-NeRF / NVFi layout folder) into the run folder --out.
+
+    \b
+    Stages (each with a progress bar; losses go to log.jsonl and losses.png):
+      canonical  3D Gaussians at t = 0 (densified and pruned)
+      kinematic  physics codes and velocity field through renders of the moving Gaussians
+      physics    MPM particles from the dynamic Gaussians; materials, initial velocity and effect
+                 parameters trained through the differentiable simulator
+    An interrupted fit continues with --resume. The resolved config is saved as config.toml.
+    """
+    from causalgs import _ti
+    from causalgs.model.config import FitConfig, from_dict, to_dict
+    from causalgs.model.fit import fit as run_fit
+    from causalgs.model.plots import plot_losses
+
+    if resume:
+        if config_path or overrides or no_physics:
+            raise CausalGSError("--resume continues with the run's saved config.toml; drop --config/--set/--no-physics")
+        config = None
+    else:
+        config = FitConfig.load(config_path) if config_path else FitConfig.preset_config(preset)
+        d = to_dict(config)
+        d["seed"] = seed
+        if no_physics:
+            d["physics"]["enabled"] = False
+        for item in overrides:
+            _apply_override(d, item)
+        config = from_dict(FitConfig, d)
+    precision = config.precision if config else FitConfig.load(Path(out) / "config.toml").precision
+    _ti.init(device, precision)
+    update, bar = _progress_callbacks()
+    with bar:
+        model = run_fit(data, out, config, resume=resume, progress=update)
+    plot_losses(Path(out) / "log.jsonl", Path(out) / "losses.png")
+    info = json.loads((Path(out) / "run.json").read_text())
+    click.echo(f"Fitted {info['data']} -> {out}: {int(model.dynamic.sum())} dynamic / {model.gaussians.n} Gaussians, "
+               f"{len(model.particles) if model.particles is not None else 0} particles, "
+               f"{info['total_seconds']:.0f} s")  # fmt: skip
+
+
+def _apply_override(d: dict, item: str) -> None:
+    import tomllib
+
+    key, eq, value = item.partition("=")
+    if not eq:
+        raise CausalGSError(f"--set {item}: expected KEY=VALUE")
+    try:
+        parsed = tomllib.loads(f"v = {value}")["v"]
+    except tomllib.TOMLDecodeError:
+        parsed = value  # a bare string
+    *path, last = key.strip().split(".")
+    node = d
+    for p in path:
+        if not isinstance(node.get(p), dict):
+            raise CausalGSError(f"--set {item}: no settings group '{p}'")
+        node = node[p]
+    node[last] = parsed
+
+
+@click.command()
+@click.argument("run", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--frames", type=click.IntRange(min=1), default=22, show_default=True, help="Future frames to predict.")
+@click.option("--dynamics", type=click.Choice(["mpm", "velocity", "frozen", "kinematic-only"]), default="mpm",
+              show_default=True, help="mpm: the simulator; velocity: the kinematic field extrapolated; frozen: the "
+              "last observed frame; kinematic-only: the model before its physical stage.")
+@click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path),
+              help="Output folder.  [default: RUN/predict/DYNAMICS]")
+@click.option("--no-video", is_flag=True, help="Write PNGs only.")
+@device_option
+def predict(run, frames, dynamics, out, no_video, device):
+    """Render the future: the FRAMES frames after the observed window, from every test camera of RUN's dataset.
+
+    Writes view_NNN/FFFF.png and view_NNN.mp4 per camera and metrics.json (PSNR, SSIM, LPIPS) where the dataset
+    has ground truth for those frames.
+    """
+    from causalgs import _ti
+    from causalgs.model.config import FitConfig
+    from causalgs.model.evaluate import predict as run_predict
+
+    _check_run(run)
+    _ti.init(device, FitConfig.load(run / "config.toml").precision)
+    update, bar = _progress_callbacks()
+    with bar:
+        summary = run_predict(run, frames, dynamics, out, video=not no_video,
+                              progress=lambda i, n: update("predict", i, n, {}))  # fmt: skip
+    line = f"Predicted frames {summary['frames'][0]}..{summary['frames'][-1]} from {len(summary['views'])} views "
+    line += f"({dynamics}) -> {summary['out']}"
+    m = summary.get("metrics")
+    if m:
+        line += f"; PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}"
+        if m.get("lpips_alex") is not None:
+            line += f", LPIPS(alex) {m['lpips_alex']:.4f}"
+    click.echo(line)
+
+
+@click.command(name="eval")
+@click.argument("run", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--dynamics", multiple=True, type=click.Choice(["mpm", "velocity", "frozen", "kinematic-only"]),
+              help="Dynamics to score (repeatable).  [default: all]")
+@click.option("--json", "as_json", is_flag=True, help="Print metrics.json to stdout.")
+@device_option
+def eval_(run, dynamics, as_json, device):
+    """Score RUN: interpolation (val: held-out views at observed times) and extrapolation (test: future frames) by
+    every dynamics; PSNR (per-image mean and pooled), SSIM, LPIPS (AlexNet, VGG). Writes RUN/metrics.json."""
+    from causalgs import _ti
+    from causalgs.model.config import FitConfig
+    from causalgs.model.evaluate import DYNAMICS, evaluate
+
+    _check_run(run)
+    _ti.init(device, FitConfig.load(run / "config.toml").precision)
+    result = evaluate(run, dynamics=dynamics or DYNAMICS)
+    if as_json:
+        click.echo(json.dumps(result, indent=2))
+        return
+    for key, rows in result.items():
+        for dyn, m in rows.items():
+            lp = m.get("lpips_alex")
+            lp = f"{lp:.4f}" if lp is not None else "n/a"
+            click.echo(f"{key:14s} {dyn:15s} PSNR {m['psnr']:6.2f}  SSIM {m['ssim']:.4f}  LPIPS(alex) {lp}  "
+                       f"({m['images']} images)")  # fmt: skip
+    click.echo(f"Wrote {run / 'metrics.json'}")
+
+
+def _check_run(run: Path) -> None:
+    if not run.is_dir():
+        raise CausalGSError(f"run folder not found: {run}")
+    for name in ("config.toml", "run.json", "checkpoint.pt"):
+        if not (run / name).is_file():
+            raise CausalGSError(f"{run}: no {name} (not a fitted run folder; run `causalgs fit DATA --out {run}`)")

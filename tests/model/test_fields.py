@@ -1,0 +1,120 @@
+"""The inverse-physics fields and the kinematic integrator: bounds, the divergence-free basis, RK2 and rotation order
+against a closed-form rigid rotation, and gradients reaching every network."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from causalgs.errors import CausalGSError
+from causalgs.model.fields import FieldsConfig, InversePhysics, basis
+from causalgs.model.kinematic import integrate, quat_mul, rotvec_quat
+
+
+def _fields(**kw) -> InversePhysics:
+    torch.manual_seed(0)
+    return InversePhysics(FieldsConfig(**kw), lo=(-1, -1, -1), hi=(1, 1, 1), duration=1.0).double()
+
+
+def test_materials_stay_in_their_ranges_and_start_at_init():
+    f = _fields(E_range=(1e3, 1e6), E_init=3e4, nu_range=(0.1, 0.4), nu_init=0.25, density_range=(500.0, 2000.0))
+    p = torch.rand(200, 3, dtype=torch.float64) * 2 - 1
+    m = f.materials(p)
+    assert torch.allclose(m["E"], torch.full_like(m["E"], 3e4), rtol=0.05)
+    assert torch.allclose(m["nu"], torch.full_like(m["nu"], 0.25), atol=0.01)
+    with torch.no_grad():  # push the decoder to its extremes: outputs saturate at the bounds, never beyond
+        f.f_mat[-1].bias.copy_(torch.tensor([50.0, -50.0, 50.0]))
+        m = f.materials(p)
+    assert float(m["E"].max()) <= 1e6 * (1 + 1e-9) and float(m["E"].min()) > 0.99e6
+    assert float(m["nu"].min()) >= 0.1 - 1e-12 and float(m["nu"].max()) < 0.1 + 1e-6
+    assert float(m["density"].max()) <= 2000.0 + 1e-9
+
+
+def test_bad_ranges_are_one_line_errors():
+    with pytest.raises(CausalGSError, match="E_init"):
+        FieldsConfig(E_range=(1e3, 1e4), E_init=1e5)
+    with pytest.raises(CausalGSError, match="nu_init"):
+        FieldsConfig(nu_range=(0.1, 0.5), nu_init=0.3)
+
+
+def test_basis_fields_are_divergence_free_and_match_the_affine_form():
+    torch.manual_seed(1)
+    p = torch.randn(30, 3, dtype=torch.float64, requires_grad=True)
+    c = torch.randn(3, dtype=torch.float64)
+    B = basis(p, c)  # [N, 6, 3]
+    for j in range(6):
+        div = sum(torch.autograd.grad(B[:, j, d].sum(), p, retain_graph=True)[0][:, d] for d in range(3))
+        assert float(div.abs().max()) < 1e-12
+    # v = V · B(p) equals the integrator's affine form a + ω × p with a = u − ω × c.
+    V = torch.randn(6, dtype=torch.float64)
+    v = torch.einsum("j,njd->nd", V, B)
+    u, w = V[:3], V[3:]
+    assert torch.allclose(v, u - torch.linalg.cross(w, c) + torch.linalg.cross(w.expand(30, 3), p), atol=1e-12)
+
+
+def _rigid_spin(f: InversePhysics, omega: float, centre) -> None:
+    """Set every pattern to a constant spin ω about z through ``centre`` (u = ω × c cancels the origin term)."""
+    with torch.no_grad():
+        for layer in f.f_weight:
+            if isinstance(layer, torch.nn.Linear):
+                layer.weight.zero_()
+                layer.bias.zero_()
+        K = f.config.patterns
+        twist = torch.zeros(K, 6, dtype=torch.float64)
+        w = torch.tensor([0.0, 0.0, omega], dtype=torch.float64)
+        c = torch.tensor(centre, dtype=torch.float64)
+        twist[:, 3:] = w
+        f.centres.copy_(c.expand(K, 3))
+        f.f_weight[-1].bias.copy_(twist.flatten())  # u = 0: the rotation is about c
+
+
+def test_rk2_positions_and_rotations_converge_at_second_order():
+    f = _fields(patterns=3)
+    omega, centre = 2.0, (0.3, -0.2, 0.0)
+    _rigid_spin(f, omega, centre)
+    x0 = torch.tensor([[1.0, 0.5, 0.2], [-0.4, 0.1, -0.3]], dtype=torch.float64)
+    q0 = torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.8, 0.2, -0.1, 0.3]], dtype=torch.float64)
+    h = f.mixture(f.code(x0))
+    T = 1.0
+    theta = omega * T
+    c = torch.tensor(centre, dtype=torch.float64)
+    R = torch.tensor([[math.cos(theta), -math.sin(theta), 0], [math.sin(theta), math.cos(theta), 0], [0, 0, 1]],
+                     dtype=torch.float64)  # fmt: skip
+    x_true = (x0 - c) @ R.T + c
+    q_true = quat_mul(rotvec_quat(torch.tensor([0.0, 0.0, theta], dtype=torch.float64)).expand(2, 4),
+                      q0 / q0.norm(dim=-1, keepdim=True))  # fmt: skip
+    errs = []
+    for steps in (10, 20, 40):
+        xs, qs = integrate(f, h, x0, q0, steps, T / steps)
+        errs.append(float((xs[-1] - x_true).norm(dim=-1).max()))
+        # constant ω: the midpoint rotation update is exact
+        assert torch.allclose(qs[-1], q_true, atol=1e-12)
+    assert errs[0] / errs[1] > 3.5 and errs[1] / errs[2] > 3.5, errs  # second order: error / 4 per halving
+    # substeps split each frame: 2 substeps of 20 frames == 40 frames
+    xs2, _ = integrate(f, h, x0, None, 20, T / 20, substeps=2)
+    assert float((xs2[-1] - x_true).norm(dim=-1).max()) == pytest.approx(errs[2], rel=1e-9)
+
+
+def test_gradients_reach_every_network():
+    f = _fields(patterns=4)
+    with torch.no_grad():
+        f.f_weight[-1].weight.normal_(0, 0.3)
+    x0 = torch.rand(20, 3, dtype=torch.float64)
+    h = f.mixture(f.code(x0))
+    xs, _ = integrate(f, h, x0, None, 5, 0.1)
+    loss = (xs[-1] ** 2).sum() + f.materials(x0)["E"].log().sum()
+    loss.backward()
+    for name in ("f_vel", "f_neck", "f_weight", "f_mat"):
+        g = torch.cat([p.grad.flatten() for p in getattr(f, name).parameters()])
+        assert float(g.abs().max()) > 0, name
+    assert float(f.centres.grad.abs().max()) > 0
+
+
+def test_velocity_gradcheck_float64():
+    f = _fields(patterns=2, width=8, depth=1, pos_freqs=1, time_freqs=1)
+    with torch.no_grad():
+        f.f_weight[-1].weight.normal_(0, 0.5)
+    p = torch.rand(4, 3, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda q: f.velocity(q, 0.3), (p,))
