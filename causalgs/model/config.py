@@ -102,12 +102,15 @@ class FitConfig:
 
 PRESETS: dict[str, dict] = {
     "quick": {
-        "canonical": {"iterations": 1500},
+        "canonical": {"iterations": 1500, "densify_from": 200, "densify_until": 1200, "densify_every": 100,
+                      "opacity_reset_every": 0, "max_gaussians": 20_000, "sh_degree": 1,
+                      "sh_degree_every": 500},
         "kinematic": {"iterations": 1200},
         "physics": {"iterations": 40},
     },
     "full": {
-        "canonical": {"iterations": 4000},
+        "canonical": {"iterations": 5000, "densify_from": 300, "densify_until": 3500, "densify_every": 100,
+                      "opacity_reset_every": 2000, "max_gaussians": 40_000, "sh_degree": 2, "sh_degree_every": 1000},
         "kinematic": {"iterations": 3000},
         "physics": {"iterations": 120, "budget": 3000},
     },

@@ -196,7 +196,7 @@ class Trainer:
         cfg = self.config.canonical
 
         def log(rec: dict) -> None:
-            self.run.log({"stage": "canonical", **rec})
+            self.run.log({"stage": "canonical", "it": rec.get("step", 0), **rec})
 
         def progress(step, total, losses):
             self.progress("canonical", step, total, losses)
@@ -227,7 +227,7 @@ class Trainer:
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-            rec = {"stage": "kinematic", "it": it + 1, "loss": float(loss), "window": window}
+            rec = {"stage": "kinematic", "it": it + 1, "loss": float(loss.detach()), "window": window}
             self.run.log(rec)
             self.progress("kinematic", it + 1, kc.iterations, rec)
             self.stage_seconds["kinematic"] = time.monotonic() - t0
@@ -290,9 +290,9 @@ class Trainer:
             opt.step()
             with torch.no_grad():  # keep the friction coefficient and the like inside their bounds
                 m.effect_params.copy_(torch.as_tensor(_clamped(m, m.effect_params.detach().numpy())))
-            rec = {"stage": "physics", "it": it + 1, "loss": float(loss), "image": float(img_loss),
-                   "consistency": float(cons), "window": window, "E_median": float(out["E"].median()),
-                   "nu_median": float(out["nu"].median()),
+            rec = {"stage": "physics", "it": it + 1, "loss": float(loss.detach()), "image": float(img_loss.detach()),
+                   "consistency": float(cons.detach()), "window": window, "E_median": float(out["E"].detach().median()),
+                   "nu_median": float(out["nu"].detach().median()),
                    **{n: float(v) for n, v, k in zip(m.simulator().effects.param_names(), m.effect_params.tolist(),
                                                      mask.tolist(), strict=True) if k}}  # fmt: skip
             self.run.log(rec)

@@ -60,13 +60,31 @@ class Particles:
 def build_particles(
     means: np.ndarray, dynamic: np.ndarray, lo, dx: float, budget: int, capacity: int, seed: int = 0
 ) -> Particles:
-    """Particles for the Gaussians ``means[dynamic]`` on a grid of cell ``dx`` whose box starts at ``lo``."""
+    """Particles for the Gaussians ``means[dynamic]`` on a grid of cell ``dx`` whose box starts at ``lo``: 8 per
+    cell, or 1 per cell when 8 would pass ``capacity`` (a large dynamic region on a fixed-capacity store)."""
+    try:
+        return _build(means, dynamic, lo, dx / 2.0, budget, capacity, seed)
+    except _TooMany:
+        pass
+    try:
+        return _build(means, dynamic, lo, dx, budget, capacity, seed)
+    except _TooMany as e:
+        raise CausalGSError(
+            f"the dynamic region needs {e.args[0]} particles even at one per cell, more than the simulator's "
+            f"capacity {capacity}: lower the grid resolution or the particle budget, or raise physics.capacity"
+        ) from None
+
+
+class _TooMany(Exception):
+    pass
+
+
+def _build(means: np.ndarray, dynamic: np.ndarray, lo, h: float, budget: int, capacity: int, seed: int) -> Particles:
     dyn = np.flatnonzero(dynamic)
     if len(dyn) == 0:
         raise CausalGSError("no dynamic Gaussians to simulate: every Gaussian was classed static")
     rng = np.random.default_rng(seed)
     chosen = dyn if len(dyn) <= budget else np.sort(rng.choice(dyn, budget, replace=False))
-    h = dx / 2.0
     lo = np.asarray(lo, dtype=np.float64)
     pts = means[dyn].astype(np.float64)
     ijk = np.floor((pts - lo) / h).astype(np.int64)
@@ -75,7 +93,14 @@ def build_particles(
     shape = ijk.max(0) - base + 1 + pad
     occ = np.zeros(shape, dtype=bool)
     occ[tuple((ijk - base).T)] = True
-    occ = ndimage.binary_closing(occ, structure=np.ones((3, 3, 3), bool), iterations=1)
+    # Close gaps as wide as the Gaussians' typical spacing so the surface seals before its inside is filled.
+    spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1])) if len(pts) > 1 else h
+    closing = int(np.clip(np.ceil(2.0 * spacing / h), 1, 6))
+    pad += closing
+    occ = np.pad(occ, closing)
+    base = base - closing
+    shape = np.array(occ.shape)
+    occ = ndimage.binary_closing(occ, structure=np.ones((3, 3, 3), bool), iterations=closing)
     occ = ndimage.binary_fill_holes(occ)
     # Every Gaussian particle's voxel.
     g_ijk = np.floor((means[chosen].astype(np.float64) - lo) / h).astype(np.int64) - base
@@ -86,10 +111,7 @@ def build_particles(
     fill_x = lo + (fill_ijk + base + 0.5) * h
     x0 = np.concatenate([means[chosen].astype(np.float64), fill_x])
     if len(x0) > capacity:
-        raise CausalGSError(
-            f"the dynamic region needs {len(x0)} particles ({len(chosen)} Gaussians + {len(fill_x)} fill), more than "
-            f"the simulator's capacity {capacity}: lower the grid resolution or the particle budget, or raise capacity"
-        )
+        raise _TooMany(len(x0))
     # Share each voxel's volume among its particles.
     all_ijk = np.concatenate([g_ijk, fill_ijk])
     flat = np.ravel_multi_index(tuple(all_ijk.T), shape)

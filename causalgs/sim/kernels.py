@@ -29,6 +29,9 @@ from causalgs import _ti
 from causalgs._ti import ti
 from causalgs.sim.materials import kirchhoff, lame_ti
 
+# Grid mass (kg) below which a node is empty (see grid_update).
+MASS_EPS = 1e-12
+
 
 @ti.kernel
 def clear_grid(grid_v_in: ti.template(), grid_m: ti.template(), grid_v_out: ti.template(), box: ti.template()):
@@ -201,11 +204,13 @@ def grid_update(
     box: ti.template(),
 ):
     """Momentum → velocity, then every force and boundary term in order, over the particles' box. Empty nodes keep
-    zero velocity (branch-free: the division uses a safe mass so its adjoint stays finite)."""
+    zero velocity (branch-free: the division uses a safe mass so its adjoint stays finite). A node counts as empty
+    below ``MASS_EPS``: at the edge of a B-spline's support a node can get a denormal mass in float32, whose adjoint
+    −mv/m² overflows to inf and, times a zero adjoint, poisons every particle with NaN."""
     for i, j, k in ti.ndrange((box[0], box[3]), (box[1], box[4]), (box[2], box[5])):
         I = ti.Vector([i, j, k])
         m = grid_m[I]
-        has = m > 0
+        has = m > MASS_EPS
         v = grid_v_in[I] / ti.select(has, m, 1.0)
         xi = lo + ti.cast(I, float) * dx
         v = effects.apply(v, xi, I, dt, dx, ti.static(grid_m.shape))

@@ -1,0 +1,101 @@
+"""Image metrics: PSNR (per image and pooled), SSIM, LPIPS (AlexNet and VGG16), and the report the eval writes.
+
+Published numbers for novel-view synthesis differ mostly by convention (RGB or luma, 'valid' or padded SSIM, mean of
+per-image PSNR or PSNR of the pooled MSE), so :func:`image_metrics` names the conventions it used next to the values.
+The implementations reproduce the original implementations' values on the IQA-PyTorch calibration pairs
+(``tests/data/metrics-calibration``): PSNR on RGB (scikit-image), SSIM on MATLAB ``rgb2gray`` (ssim_index.m), LPIPS
+alex v0.1.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from causalgs.errors import CausalGSError
+from causalgs.metrics.lpips_net import NETS, lpips, lpips_available, lpips_network
+from causalgs.metrics.pixel import CHANNELS, SSIM_SIGMA, SSIM_WINDOW, _mse, _pairs, psnr, psnr_pooled, ssim, ssim_map
+
+__all__ = [
+    "CHANNELS",
+    "NETS",
+    "PSNR_CAP_DB",
+    "image_metrics",
+    "lpips",
+    "lpips_available",
+    "lpips_network",
+    "psnr",
+    "psnr_pooled",
+    "ssim",
+    "ssim_map",
+]
+
+# metrics.json is strict JSON (no Infinity): a PSNR of identical images (+inf) is reported as this many dB.
+PSNR_CAP_DB = 100.0
+
+
+def _psnr_db(mse: float) -> float:
+    return PSNR_CAP_DB if mse <= 0 else min(PSNR_CAP_DB, -10.0 * math.log10(mse))
+
+
+def image_metrics(preds, gts, *, lpips_nets=("alex", "vgg")) -> dict:
+    """Metrics of predicted images against ground truth, as a JSON-serialisable dict (plain floats).
+
+    ``preds``, ``gts``: sequences of ``[H, W, 3]`` float images (tensors or arrays) in [0, 1], or ``[B, H, W, 3]``
+    batches. Keys: ``psnr`` (mean of per-image PSNR), ``psnr_pooled`` (PSNR of the mean per-image MSE), ``ssim``
+    (mean of per-image SSIM), ``lpips_alex`` and ``lpips_vgg`` (mean of per-image LPIPS, ``None`` when the weights are
+    missing or the net was not asked for; ``lpips_unavailable`` then says why), ``n_images``, ``per_image`` (the
+    per-image values) and ``conventions``. PSNR and SSIM are computed in float64, LPIPS in float32.
+    """
+    preds, gts = _pairs(preds, gts)
+    nets = tuple(lpips_nets)
+    for net in nets:
+        if net not in NETS:
+            raise CausalGSError(f"unknown LPIPS network {net!r} (expected one of {', '.join(NETS)})")
+    lpips_state = {net: lpips_available(net) if net in nets else (False, "not requested") for net in NETS}
+
+    per: dict[str, list[float]] = {"psnr": [], "ssim": []}
+    per.update({f"lpips_{net}": [] for net in NETS if lpips_state[net][0]})
+    mses = []
+    with torch.no_grad():
+        for i, (p, g) in enumerate(zip(preds, gts, strict=True)):
+            try:
+                mse = float(_mse(p, g, "rgb", 1.0)[0][0])
+                p64 = torch.as_tensor(p).to(torch.float64)
+                g64 = torch.as_tensor(g).to(torch.float64)
+                per["ssim"].append(float(ssim(p64, g64)))
+                for net in NETS:
+                    if lpips_state[net][0]:
+                        per[f"lpips_{net}"].append(float(lpips(p64.float(), g64.float(), net=net)))
+            except CausalGSError as e:
+                raise CausalGSError(f"image {i}: {e}") from None
+            mses.append(mse)
+            per["psnr"].append(_psnr_db(mse))
+
+    def mean(values: list[float]) -> float:
+        return math.fsum(values) / len(values)
+
+    out = {
+        "psnr": mean(per["psnr"]),
+        "psnr_pooled": _psnr_db(mean(mses)),
+        "ssim": mean(per["ssim"]),
+    }
+    for net in NETS:
+        out[f"lpips_{net}"] = mean(per[f"lpips_{net}"]) if lpips_state[net][0] else None
+    unavailable = {f"lpips_{net}": why for net, (ok, why) in lpips_state.items() if not ok}
+    if unavailable:
+        out["lpips_unavailable"] = unavailable
+    out["n_images"] = len(preds)
+    out["per_image"] = per
+    out["conventions"] = {
+        "images": "RGB, float values in [0, 1] (data range 1.0)",
+        "psnr": f"10 log10(1 / MSE) over RGB pixels of each image, then averaged; capped at {PSNR_CAP_DB:g} dB "
+        "(identical images)",
+        "psnr_pooled": "10 log10(1 / mean of the per-image RGB MSEs)",
+        "ssim": f"RGB channels averaged, {SSIM_WINDOW}x{SSIM_WINDOW} Gaussian window sigma {SSIM_SIGMA}, K1 0.01, "
+        "K2 0.03, 'valid' filtering (no padding), no downsampling, mean over images",
+        "lpips": "v0.1 linear heads, inputs scaled to [-1, 1], mean over images; weights: "
+        + "; ".join(f"{net}: {why}" for net, (ok, why) in lpips_state.items() if ok),
+    }
+    return out

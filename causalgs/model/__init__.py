@@ -1,0 +1,1 @@
+"""The learned scene: canonical (t = 0) Gaussians, their training, and the dynamics that move them."""
