@@ -70,7 +70,8 @@ class Encoding(nn.Module):
         super().__init__()
         self.freqs, self.dims = int(freqs), int(dims)
         self.register_buffer("centre", torch.zeros(dims) if centre is None else torch.as_tensor(centre).float())
-        self.register_buffer("half_extent", torch.ones(dims) if half_extent is None else torch.as_tensor(half_extent).float())
+        half = torch.ones(dims) if half_extent is None else torch.as_tensor(half_extent).float()
+        self.register_buffer("half_extent", half)
         self.register_buffer("scales", math.pi * 2.0 ** torch.arange(self.freqs, dtype=torch.float32))
 
     @property
