@@ -111,8 +111,10 @@ def _apply_override(d: dict, item: str) -> None:
 @click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder.  [default: RUN/predict/DYNAMICS]")
 @click.option("--no-video", is_flag=True, help="Write PNGs only.")
+@click.option("--lpips", "lpips_nets", default="alex", show_default=True,
+              help="LPIPS networks to score with: 'alex', 'vgg', 'alex,vgg' or 'none' (VGG is ~20x slower on a CPU).")
 @device_option
-def predict(run, frames, dynamics, out, no_video, device):
+def predict(run, frames, dynamics, out, no_video, lpips_nets, device):
     """Render the future: the FRAMES frames after the observed window, from every test camera of RUN's dataset.
 
     Writes view_NNN/FFFF.png and view_NNN.mp4 per camera and metrics.json (PSNR, SSIM, LPIPS) where the dataset
@@ -126,7 +128,7 @@ def predict(run, frames, dynamics, out, no_video, device):
     _ti.init(device, FitConfig.load(run / "config.toml").precision)
     update, bar = _progress_callbacks()
     with bar:
-        summary = run_predict(run, frames, dynamics, out, video=not no_video,
+        summary = run_predict(run, frames, dynamics, out, video=not no_video, lpips_nets=_nets(lpips_nets),
                               progress=lambda i, n: update("predict", i, n, {}))  # fmt: skip
     line = f"Predicted frames {summary['frames'][0]}..{summary['frames'][-1]} from {len(summary['views'])} views "
     line += f"({dynamics}) -> {summary['out']}"
@@ -142,9 +144,11 @@ def predict(run, frames, dynamics, out, no_video, device):
 @click.argument("run", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--dynamics", multiple=True, type=click.Choice(["mpm", "velocity", "frozen", "kinematic-only"]),
               help="Dynamics to score (repeatable).  [default: all]")
+@click.option("--lpips", "lpips_nets", default="alex,vgg", show_default=True,
+              help="LPIPS networks: 'alex', 'vgg', 'alex,vgg' or 'none' (VGG is ~20x slower on a CPU).")
 @click.option("--json", "as_json", is_flag=True, help="Print metrics.json to stdout.")
 @device_option
-def eval_(run, dynamics, as_json, device):
+def eval_(run, dynamics, lpips_nets, as_json, device):
     """Score RUN: interpolation (val: held-out views at observed times) and extrapolation (test: future frames) by
     every dynamics; PSNR (per-image mean and pooled), SSIM, LPIPS (AlexNet, VGG). Writes RUN/metrics.json."""
     from causalgs import _ti
@@ -153,17 +157,35 @@ def eval_(run, dynamics, as_json, device):
 
     _check_run(run)
     _ti.init(device, FitConfig.load(run / "config.toml").precision)
-    result = evaluate(run, dynamics=dynamics or DYNAMICS)
+    result = evaluate(run, dynamics=dynamics or DYNAMICS, lpips_nets=_nets(lpips_nets))
     if as_json:
         click.echo(json.dumps(result, indent=2))
         return
-    for key, rows in result.items():
-        for dyn, m in rows.items():
+    for key in ("interpolation", "extrapolation"):
+        for dyn, m in result[key].items():
             lp = m.get("lpips_alex")
             lp = f"{lp:.4f}" if lp is not None else "n/a"
             click.echo(f"{key:14s} {dyn:15s} PSNR {m['psnr']:6.2f}  SSIM {m['ssim']:.4f}  LPIPS(alex) {lp}  "
                        f"({m['images']} images)")  # fmt: skip
+    rec = result.get("recovery")
+    if rec:
+        for o in rec["objects"]:
+            if o.get("gaussians"):
+                rel = o["velocity_error_relative"]
+                click.echo(f"object {o['id']} {o['name']}: E {o['E_model']:.3g} (true {o['E_true']:.3g}), initial "
+                           f"velocity error {o['velocity_error_mean']:.3f} m/s"
+                           + (f" ({100 * rel:.0f}% of its speed)" if rel is not None else ""))  # fmt: skip
+        if rec["stiffness_order_ok"] is not None:
+            click.echo(f"stiffness order of the objects: {'right' if rec['stiffness_order_ok'] else 'wrong'}")
     click.echo(f"Wrote {run / 'metrics.json'}")
+
+
+def _nets(text: str) -> tuple[str, ...]:
+    nets = tuple(n.strip() for n in text.split(",") if n.strip() and n.strip() != "none")
+    bad = [n for n in nets if n not in ("alex", "vgg")]
+    if bad:
+        raise CausalGSError(f"--lpips {text}: unknown network(s) {', '.join(bad)} (alex, vgg or none)")
+    return nets
 
 
 def _check_run(run: Path) -> None:

@@ -10,7 +10,8 @@ Dynamics (``--dynamics``):
 
 ``evaluate`` writes ``metrics.json``: interpolation (val: held-out views at observed times) and extrapolation (test:
 future frames from every view), PSNR (mean of per-image values, and pooled), SSIM and LPIPS (AlexNet, VGG) for every
-dynamics, plus the number of images and the conventions.
+dynamics, plus the number of images and the conventions; on datasets with ground truth also ``recovery``
+(:mod:`causalgs.model.recovery`: per-object stiffness and initial-velocity error).
 """
 
 from __future__ import annotations
@@ -22,9 +23,10 @@ import torch
 
 from causalgs.dataset import Frame
 from causalgs.errors import CausalGSError
-from causalgs.io import write_image, write_json
+from causalgs.io import read_json, write_image, write_json
 from causalgs.metrics import image_metrics
 from causalgs.model.fit import load_model
+from causalgs.model.recovery import recovery_report
 from causalgs.model.scene import CausalGS, State
 from causalgs.model.timeline import Timeline
 from causalgs.render.views import to_uint8, write_video
@@ -88,6 +90,10 @@ def evaluate(run_dir, *, dynamics=DYNAMICS, lpips_nets=("alex", "vgg"), progress
             result[key][dyn]["images"] = len(frames)
             if progress:
                 progress(dyn, split, result[key][dyn])
+    info = read_json(run_dir / "run.json", "run info")
+    recovered = recovery_report(run_dir / "physics.npz", info["data"]) if (run_dir / "physics.npz").is_file() else None
+    if recovered is not None:
+        result["recovery"] = recovered
     write_json(run_dir / "metrics.json", result)
     return result
 

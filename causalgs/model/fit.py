@@ -229,9 +229,9 @@ class Trainer:
             opt.step()
             rec = {"stage": "kinematic", "it": it + 1, "loss": float(loss.detach()), "window": window}
             self.run.log(rec)
-            self.progress("kinematic", it + 1, kc.iterations, rec)
             self.stage_seconds["kinematic"] = time.monotonic() - t0
             self._maybe_save("kinematic", it + 1, opt, force=it + 1 == kc.iterations)
+            self.progress("kinematic", it + 1, kc.iterations, rec)
         self._split_static()
         self.stage_seconds["kinematic"] = time.monotonic() - t0
         self.run.save(self._payload("physics", 0))
@@ -296,9 +296,9 @@ class Trainer:
                    **{n: float(v) for n, v, k in zip(m.simulator().effects.param_names(), m.effect_params.tolist(),
                                                      mask.tolist(), strict=True) if k}}  # fmt: skip
             self.run.log(rec)
-            self.progress("physics", it + 1, pc.iterations, rec)
             self.stage_seconds["physics"] = time.monotonic() - t0
             self._maybe_save("physics", it + 1, opt, force=it + 1 == pc.iterations)
+            self.progress("physics", it + 1, pc.iterations, rec)
         self.stage_seconds["physics"] = time.monotonic() - t0
 
 

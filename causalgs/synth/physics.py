@@ -30,6 +30,7 @@ from causalgs.synth.writer import SynthScene
 FPS = 24.0
 FOV = 0.6911112070083618  # camera_angle_x of the D-NeRF / NVFi Blender scenes
 ELEVATIONS_DEG = (18.0, 38.0)
+STATIC_POINTS = 4000  # initial-cloud samples on the static floor and walls
 REFERENCE_RES = 64  # grid cells along the longest side of the simulation box (the model uses coarser grids)
 FLOOR_ID = 1
 
@@ -123,6 +124,24 @@ def _floor(effects, half: float) -> Mesh | None:
     return None
 
 
+def _area(mesh: Mesh) -> float:
+    a, b, c = (mesh.X[mesh.T[:, i]] for i in range(3))
+    return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+
+
+def _surface_samples(mesh: Mesh, count: float, rng) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points uniform in area on a mesh's triangles, coloured with its base colour."""
+    n = max(1, round(count))
+    a, b, c = (mesh.X[mesh.T[:, i]] for i in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    tri = rng.choice(len(area), n, p=area / area.sum())
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    pts = a[tri] + u[:, None] * (b[tri] - a[tri]) + v[:, None] * (c[tri] - a[tri])
+    return pts, np.tile(np.asarray(mesh.color, dtype=np.float64), (n, 1))
+
+
 def simulate(setup: PhysicsSetup, frames: int, fps: float, progress: bool = True) -> dict:
     """Run the reference MPM; returns rest particles, owners, per-frame positions and F (float32), and the effects."""
     from causalgs.sim import SimConfig, Simulator
@@ -204,9 +223,13 @@ def build_scene(
         for cam in cameras:
             yield render_meshes(cam, ms, pos)
 
-    # Initial points: the t = 0 surface samples (mesh vertices) with their rendered albedo-ish colour.
-    pts = np.concatenate([v[0] for v in verts])
-    cols = np.concatenate([np.tile(np.asarray(m.color), (len(m.X), 1)) for m in meshes])
+    # Initial points, as SfM would give them: the t = 0 surface samples (mesh vertices) of the bodies and area-uniform
+    # samples of the static floor and walls, with their base colours.
+    rng = np.random.default_rng(seed + 17)
+    still = [_surface_samples(m, STATIC_POINTS * _area(m) / max(sum(_area(k) for k in statics), 1e-12), rng)
+             for m in statics]  # fmt: skip
+    pts = np.concatenate([v[0] for v in verts] + [p for p, _ in still])
+    cols = np.concatenate([np.tile(np.asarray(m.color), (len(m.X), 1)) for m in meshes] + [c for _, c in still])
     eff = run["effects"]
     objects = [{"id": FLOOR_ID, "name": "floor" + (" and walls" if setup.static else ""), "kind": "static"}]
     objects = objects if statics else []

@@ -1,0 +1,193 @@
+"""fit → predict → eval → render end to end on a tiny simulated scene, resume after an interruption, the simulator
+changing the materials, and one-line errors for bad inputs.
+
+Sizes are the smallest that exercise every stage (4 views, 10 frames, 32² images, a 24³ grid): these tests check the
+pipeline, not the quality of the fit (the benchmark runs in the issue notes measure that)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from causalgs.errors import CausalGSError
+
+VIEWS, FRAMES, RES = 4, 10, 32
+
+TINY = {
+    "canonical": {"iterations": 120, "densify_from": 40, "densify_until": 100, "densify_every": 30,
+                  "max_gaussians": 3000, "sh_degree": 0, "log_every": 20},
+    "kinematic": {"iterations": 30, "window_start": 3},
+    "physics": {"iterations": 3, "res": 24, "budget": 300, "window_start": 4, "lr_mat": 0.05},
+}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    from causalgs import _ti
+    from causalgs.synth import physics
+    from causalgs.synth.writer import write_dataset
+
+    _ti.init("cpu", "float32")
+    out = tmp_path_factory.mktemp("fallingball") / "data"
+    s = physics.fallingball(views=VIEWS, frames=FRAMES, resolution=RES, seed=3, progress=False, reference_res=32)
+    write_dataset(out, s, background=(1, 1, 1), progress=False)
+    return out
+
+
+def _config(**over):
+    from causalgs.model.config import FitConfig, from_dict, to_dict
+
+    d = to_dict(FitConfig.preset_config("quick"))
+    for group, vals in {**TINY, **over}.items():
+        d[group].update(vals)
+    return from_dict(FitConfig, d)
+
+
+@pytest.fixture(scope="module")
+def fitted(scene, tmp_path_factory):
+    from causalgs.model.fit import fit
+
+    run = tmp_path_factory.mktemp("run") / "run"
+    fit(scene, run, _config())
+    return run
+
+
+def test_fit_writes_a_complete_run(fitted):
+    for name in ("config.toml", "run.json", "log.jsonl", "checkpoint.pt", "kinematic.pt", "gaussians.ply",
+                 "physics.npz"):  # fmt: skip
+        assert (fitted / name).is_file(), name
+    info = json.loads((fitted / "run.json").read_text())
+    assert info["status"] == "done" and set(info["stage_seconds"]) == {"canonical", "kinematic", "physics"}
+    log = [json.loads(line) for line in (fitted / "log.jsonl").read_text().splitlines()]
+    stages = {r["stage"] for r in log}
+    assert stages == {"canonical", "kinematic", "physics"}
+    phys = [r for r in log if r["stage"] == "physics" and "loss" in r]
+    assert [r["it"] for r in phys] == [1, 2, 3]
+    assert all(np.isfinite(r["loss"]) for r in phys)
+    from causalgs.ply import read_gaussians_ply
+
+    g = read_gaussians_ply(fitted / "gaussians.ply")
+    with np.load(fitted / "physics.npz") as z:
+        assert len(z["E"]) == len(g["means"]) and z["particles_x0"].shape[1] == 3
+        assert set(z["effect_names"]) >= {"gravity.g[2]", "ground.d", "ground.mu"}
+        E = z["particles_E"]
+        assert np.all((E >= 2e3) & (E <= 4e5))
+
+
+def test_the_simulator_changes_the_materials(fitted):
+    """The physical stage is the only one that trains f_mat: its losses must have moved the materials."""
+    from causalgs.model.fit import load_model
+
+    before, _, _ = load_model(fitted, "kinematic.pt")
+    after, _, _ = load_model(fitted)
+    x = after.particles.x0.float()
+    with torch.no_grad():
+        e0 = before.fields.materials(x)["E"]
+        e1 = after.fields.materials(x)["E"]
+    change = (e1.log() - e0.log()).abs()
+    assert float(change.max()) > 1e-2, float(change.max())
+    # The learned friction coefficient moved away from the effects spec's default too.
+    names = after.simulator().effects.param_names()
+    assert abs(float(after.effect_params[names.index("ground.mu")]) - 0.5) > 1e-4
+
+
+def test_physics_gradients_reach_materials_velocity_and_effects(fitted):
+    from causalgs.model.fit import load_model
+
+    m, _, _ = load_model(fitted)
+    m.effect_params.requires_grad_(True)
+    out = m.simulate([1, 2, 3])
+    loss = (out["x"] ** 2).sum() + (out["F"] ** 2).sum()
+    loss.backward()
+    g_mat = torch.cat([p.grad.flatten() for p in m.fields.f_mat.parameters()])
+    g_vel = torch.cat([p.grad.flatten() for p in m.fields.f_weight.parameters()])
+    assert float(g_mat.abs().max()) > 0 and float(g_vel.abs().max()) > 0
+    names = m.simulator().effects.param_names()
+    assert float(m.effect_params.grad[names.index("gravity.g[2]")]) != 0.0
+
+
+def test_predict_eval_and_render(fitted, tmp_path):
+    from causalgs.model.evaluate import evaluate, predict, render_view
+
+    s = predict(fitted, frames=3, dynamics="mpm", out=tmp_path / "pred", lpips_nets=("alex",))
+    first = json.loads((fitted / "run.json").read_text())["train_frames"]
+    assert s["frames"] == [first, first + 1, first + 2]
+    pngs = sorted((tmp_path / "pred").rglob("*.png"))
+    assert len(pngs) == 3 * len(s["views"]) and len(list((tmp_path / "pred").glob("*.mp4"))) == len(s["views"])
+    assert 5 < s["metrics"]["psnr"] < 100
+    m = evaluate(fitted, dynamics=("mpm", "frozen", "kinematic-only"), lpips_nets=("alex",))
+    assert set(m["extrapolation"]) == {"mpm", "frozen", "kinematic-only"}
+    assert set(m["interpolation"]) == {"mpm", "kinematic-only"}
+    for rows in m.values():
+        for r in rows.values():
+            assert np.isfinite(r["psnr"]) and 0 < r["ssim"] <= 1 and r["lpips_alex"] is not None
+    saved = json.loads((fitted / "metrics.json").read_text())
+    assert saved == m and "recovery" in m and m["recovery"]["objects"][0]["gaussians"] > 0
+    img = render_view(fitted, 1, 0.95, out=tmp_path / "v.png")
+    assert img.shape == (RES, RES, 3) and (tmp_path / "v.png").is_file()
+    # Different dynamics give different futures.
+    a = render_view(fitted, 1, 1.0, dynamics="mpm")
+    b = render_view(fitted, 1, 1.0, dynamics="frozen")
+    assert np.abs(a.astype(int) - b.astype(int)).max() > 0
+
+
+def test_resume_continues_from_the_last_checkpoint(scene, tmp_path):
+    from causalgs.model.fit import fit
+
+    run = tmp_path / "run"
+    calls = {"n": 0}
+
+    def interrupt(stage, step, total, losses):
+        if stage == "kinematic" and step == 12:
+            raise KeyboardInterrupt
+
+    cfg = _config(physics={"enabled": False})
+    cfg.checkpoint_seconds = 0.0  # a checkpoint every iteration
+    with pytest.raises(KeyboardInterrupt):
+        fit(scene, run, cfg, progress=interrupt)
+    state = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert (state["stage"], state["it"]) == ("kinematic", 12)
+    with pytest.raises(CausalGSError, match="--resume"):
+        fit(scene, run, cfg)
+
+    def count(stage, step, total, losses):
+        calls["n"] += 1
+        assert stage != "canonical", "resume must not redo a finished stage"
+
+    fit(scene, run, resume=True, progress=count)
+    assert calls["n"] == cfg.kinematic.iterations - 12
+    its = [json.loads(line)["it"] for line in (run / "log.jsonl").read_text().splitlines()
+           if json.loads(line)["stage"] == "kinematic" and "loss" in json.loads(line)]  # fmt: skip
+    assert its == list(range(1, cfg.kinematic.iterations + 1))
+    assert json.loads((run / "run.json").read_text())["status"] == "done"
+
+
+def test_bad_inputs_are_one_line_errors(tmp_path, scene):
+    from cli.main import cli
+
+    runner = CliRunner()
+
+    def run(*args):
+        r = runner.invoke(cli, list(args))
+        return r.exit_code, r.output.strip()
+
+    code, out = run("fit", str(tmp_path / "nope"), "--out", str(tmp_path / "r"))
+    assert code == 1 and out.startswith("Error:") and len(out.splitlines()) == 1
+    code, out = run("fit", str(scene), "--out", str(tmp_path / "r"), "--set", "kinematic.bogus=3")
+    assert code == 1 and "bogus" in out and len(out.splitlines()) == 1
+    code, out = run("fit", str(scene), "--out", str(tmp_path / "r"), "--set", "physics.iterations=many")
+    assert code == 1 and "physics.iterations" in out
+    code, out = run("predict", str(tmp_path))
+    assert code == 1 and "config.toml" in out and len(out.splitlines()) == 1
+    code, out = run("eval", str(tmp_path / "missing"))
+    assert code == 1 and "not found" in out
+    (tmp_path / "bad").mkdir()
+    for name in ("config.toml", "run.json"):
+        (tmp_path / "bad" / name).write_text("not [valid")
+    (tmp_path / "bad" / "checkpoint.pt").write_bytes(b"garbage")
+    code, out = run("predict", str(tmp_path / "bad"))
+    assert code == 1 and "config.toml" in out and len(out.splitlines()) == 1
