@@ -143,7 +143,7 @@ def predict(run, frames, dynamics, out, no_video, lpips_nets, device):
 @click.command(name="eval")
 @click.argument("run", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--dynamics", multiple=True, type=click.Choice(["mpm", "velocity", "frozen", "kinematic-only"]),
-              help="Dynamics to score (repeatable).  [default: all]")
+              help="Dynamics to score (repeatable).  [default: mpm, frozen, kinematic-only]")
 @click.option("--lpips", "lpips_nets", default="alex,vgg", show_default=True,
               help="LPIPS networks: 'alex', 'vgg', 'alex,vgg' or 'none' (VGG is ~20x slower on a CPU).")
 @click.option("--json", "as_json", is_flag=True, help="Print metrics.json to stdout.")
@@ -153,11 +153,11 @@ def eval_(run, dynamics, lpips_nets, as_json, device):
     every dynamics; PSNR (per-image mean and pooled), SSIM, LPIPS (AlexNet, VGG). Writes RUN/metrics.json."""
     from causalgs import _ti
     from causalgs.model.config import FitConfig
-    from causalgs.model.evaluate import DYNAMICS, evaluate
+    from causalgs.model.evaluate import EVAL_DYNAMICS, evaluate
 
     _check_run(run)
     _ti.init(device, FitConfig.load(run / "config.toml").precision)
-    result = evaluate(run, dynamics=dynamics or DYNAMICS, lpips_nets=_nets(lpips_nets))
+    result = evaluate(run, dynamics=dynamics or EVAL_DYNAMICS, lpips_nets=_nets(lpips_nets))
     if as_json:
         click.echo(json.dumps(result, indent=2))
         return

@@ -125,14 +125,14 @@ def _floor(effects, half: float) -> Mesh | None:
 
 
 def _area(mesh: Mesh) -> float:
-    a, b, c = (mesh.X[mesh.T[:, i]] for i in range(3))
+    a, b, c = (mesh.X[mesh.triangles[:, i]] for i in range(3))
     return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
 
 
 def _surface_samples(mesh: Mesh, count: float, rng) -> tuple[np.ndarray, np.ndarray]:
     """``count`` points uniform in area on a mesh's triangles, coloured with its base colour."""
     n = max(1, round(count))
-    a, b, c = (mesh.X[mesh.T[:, i]] for i in range(3))
+    a, b, c = (mesh.X[mesh.triangles[:, i]] for i in range(3))
     area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
     tri = rng.choice(len(area), n, p=area / area.sum())
     u, v = rng.random(n), rng.random(n)
