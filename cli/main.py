@@ -14,7 +14,7 @@ import click
 
 from causalgs import __version__
 from causalgs.errors import CausalGSError
-from cli.model import eval_, fit, predict
+from cli.model import cluster, eval_, fit, predict
 from cli.options import out_option, parse_rgb, seed_option
 from cli.render import render
 
@@ -127,6 +127,7 @@ cli.add_command(render)
 cli.add_command(fit)
 cli.add_command(predict)
 cli.add_command(eval_)
+cli.add_command(cluster)
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -143,7 +144,6 @@ def _not_built(name: str, what: str, issue: int):
 
 
 _PLANNED = {
-    "cluster": ("segment the scene into objects by learned physics (K-means on material features)", 6),
     "discover": ("find and name a physical effect the model is missing, add it and show the error shrink", 7),
 }
 

@@ -49,6 +49,7 @@ class State:
 
 
 _STORES: dict = {}
+_OWNER: dict = {}  # id(store) -> the model whose particles (count, volumes) the store holds
 
 
 def _sim_store(capacity: int, segment: int) -> ParticleStore:
@@ -138,11 +139,14 @@ class CausalGS(torch.nn.Module):
             cfg = SimConfig(res=pc.res, lo=tuple(lo), hi=tuple(hi), segment=pc.segment, cfl=pc.cfl,
                             max_substeps=pc.max_substeps * 64, material="neo_hookean", effects=pc.effects)  # fmt: skip
             sim = Simulator(store, cfg)
-            store.resize(len(self.particles))
-            store.from_torch("vol", self.particles.vol.to(_ti.torch_dtype()))
             if len(self.effect_params) != len(sim.effects.param_names()):
                 raise CausalGSError("the model's effect parameters do not match its effects spec")
             self._sim = sim
+        store = self._sim.store
+        if _OWNER.get(id(store)) is not self:  # the store is shared: another model may have used it since
+            store.resize(len(self.particles))
+            store.from_torch("vol", self.particles.vol.to(_ti.torch_dtype()))
+            _OWNER[id(store)] = self
         return self._sim
 
     def build_physics(self, seed: int = 0) -> None:

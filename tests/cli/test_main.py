@@ -5,7 +5,7 @@ from click.testing import CliRunner
 
 from cli.main import _PLANNED, cli
 
-COMMANDS = ("synth", "fit", "predict", "render", "cluster", "discover", "bench")
+COMMANDS = ("synth", "fit", "predict", "eval", "render", "cluster", "discover", "bench")
 
 
 def test_help_lists_every_command():

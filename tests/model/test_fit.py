@@ -191,3 +191,31 @@ def test_bad_inputs_are_one_line_errors(tmp_path, scene):
     (tmp_path / "bad" / "checkpoint.pt").write_bytes(b"garbage")
     code, out = run("predict", str(tmp_path / "bad"))
     assert code == 1 and "config.toml" in out and len(out.splitlines()) == 1
+
+
+def test_cluster_segments_by_learned_physics(fitted):
+    from cli.main import cli
+
+    r = CliRunner().invoke(cli, ["cluster", str(fitted), "--k", "2"])
+    assert r.exit_code == 0, r.output
+    rep = json.loads((fitted / "cluster" / "cluster.json").read_text())
+    labels = np.load(fitted / "cluster" / "labels.npy")
+    with np.load(fitted / "physics.npz") as z:
+        dyn = z["dynamic"].astype(bool)
+    assert rep["k"] == 2 and set(np.unique(labels[dyn])) == {1, 2} and bool((labels[~dyn] == 0).all())
+    assert sum(c["gaussians"] for c in rep["clusters"]) == int(dyn.sum())
+    gt = rep["ground_truth"]
+    assert gt["gaussians_compared"] > 0 and 0 < gt["matched_accuracy"] <= 1
+    assert (fitted / "cluster" / "clusters.ply").is_file() and (fitted / "cluster" / "clusters.png").is_file()
+
+
+def test_kmeans_and_silhouette_find_separated_groups():
+    from causalgs.model.cluster import choose_k, kmeans
+
+    rng = np.random.default_rng(0)
+    x = np.concatenate([rng.normal(c, 0.1, (100, 3)) for c in ((0, 0, 0), (3, 0, 0), (0, 3, 0))])
+    k, scores = choose_k(x, 6)
+    assert k == 3 and scores[3] > 0.7
+    labels = kmeans(x, 3)
+    for g in range(3):
+        assert len(np.unique(labels[g * 100 : (g + 1) * 100])) == 1
