@@ -56,7 +56,6 @@ def fit(data, out, preset, config_path, overrides, no_physics, resume, seed, dev
     from causalgs import _ti
     from causalgs.model.config import FitConfig, from_dict, to_dict
     from causalgs.model.fit import fit as run_fit
-    from causalgs.model.plots import plot_losses
 
     if resume:
         if config_path or overrides or no_physics:
@@ -76,7 +75,6 @@ def fit(data, out, preset, config_path, overrides, no_physics, resume, seed, dev
     update, bar = _progress_callbacks()
     with bar:
         model = run_fit(data, out, config, resume=resume, progress=update)
-    plot_losses(Path(out) / "log.jsonl", Path(out) / "losses.png")
     info = json.loads((Path(out) / "run.json").read_text())
     click.echo(f"Fitted {info['data']} -> {out}: {int(model.dynamic.sum())} dynamic / {model.gaussians.n} Gaussians, "
                f"{len(model.particles) if model.particles is not None else 0} particles, "

@@ -347,8 +347,10 @@ def fit(data_dir, out, config: FitConfig | None = None, *, resume: bool = False,
     else:
         model = trainer.fit(state)
     from causalgs.model.export import export_run
+    from causalgs.model.plots import plot_losses
 
     export_run(model, out)
+    plot_losses(run.log_path, out / "losses.png")
     write_json(run.info_path, {"data": str(Path(data_dir).resolve()), "status": "done",
                                "fps": trainer.timeline.fps, "train_frames": trainer.timeline.train_frames,
                                "stage_seconds": trainer.stage_seconds,

@@ -58,7 +58,7 @@ def fitted(scene, tmp_path_factory):
 
 def test_fit_writes_a_complete_run(fitted):
     for name in ("config.toml", "run.json", "log.jsonl", "checkpoint.pt", "kinematic.pt", "gaussians.ply",
-                 "physics.npz"):  # fmt: skip
+                 "physics.npz", "losses.png"):  # fmt: skip
         assert (fitted / name).is_file(), name
     info = json.loads((fitted / "run.json").read_text())
     assert info["status"] == "done" and set(info["stage_seconds"]) == {"canonical", "kinematic", "physics"}
