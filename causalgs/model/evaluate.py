@@ -48,12 +48,13 @@ def states(model: CausalGS, frames, dynamics: str) -> dict[int, State]:
             out = model.simulate(frames)
             return dict(zip(frames, model.physical_states(out["x"], out["F"]), strict=True))
         if dynamics in ("velocity", "kinematic-only"):
-            means, quats = model.kinematic(last)
-            return {k: State(means[k], quats[k]) for k in frames}
+            means, quats = model.kinematic(last, frames=frames)
+            return {k: State(means[i], quats[i]) for i, k in enumerate(frames)}
         if dynamics == "frozen":
-            hold = model.train_frames - 1
-            means, quats = model.kinematic(min(last, hold))
-            return {k: State(means[min(k, hold)], quats[min(k, hold)]) for k in frames}
+            held = sorted({min(k, model.train_frames - 1) for k in frames})
+            means, quats = model.kinematic(held[-1], frames=held)
+            at = {k: i for i, k in enumerate(held)}
+            return {k: State(means[at[min(k, held[-1])]], quats[at[min(k, held[-1])]]) for k in frames}
     raise CausalGSError(f"unknown dynamics '{dynamics}' (choose from {', '.join(DYNAMICS)})")
 
 

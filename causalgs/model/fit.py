@@ -218,10 +218,10 @@ class Trainer:
             window = self._window(it, kc.iterations, kc.window_start, kc.window_ramp)
             picks = self._sample(window, kc.views_per_iter)
             steps = max(k for k, _ in picks)
-            means, quats = m.kinematic(steps)
+            means, quats = m.kinematic(steps, frames=[k for k, _ in picks])
             loss = 0.0
-            for k, frame in picks:
-                img, _, _ = m.gaussians.render(frame.camera, self.bg, means=means[k], quats=quats[k])
+            for i, (_, frame) in enumerate(picks):
+                img, _, _ = m.gaussians.render(frame.camera, self.bg, means=means[i], quats=quats[i])
                 loss = loss + image_loss(img, self._gt(frame), kc.lambda_dssim) / len(picks)
             _finite(loss, "kinematic", it)
             opt.zero_grad(set_to_none=True)
@@ -273,8 +273,8 @@ class Trainer:
             frames = list(range(1, window))
             out = m.simulate(frames)
             with torch.no_grad():
-                target, _ = _particle_kinematics(m, out["h"].detach(), out["x0"].detach(), window - 1)
-            cons = ((out["x"] - target[1:].to(out["x"].dtype)) ** 2).sum(-1).mean() / dx**2
+                target, _ = m.trajectories(out["h"].detach(), out["x0"].detach(), None, window - 1, frames)
+            cons = ((out["x"] - target.to(out["x"].dtype)) ** 2).sum(-1).mean() / dx**2
             picks = self._sample(window, pc.views_per_iter, lowest=1)
             img_loss = 0.0
             for k, frame in picks:

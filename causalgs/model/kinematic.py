@@ -70,3 +70,61 @@ def integrate(
             if qs is not None:
                 qs.append(q)
     return torch.stack(xs), (torch.stack(qs) if qs is not None else None)
+
+
+def _skew(w: torch.Tensor) -> torch.Tensor:
+    """[..., 3] → [..., 3, 3] with skew(w) @ x = w × x."""
+    z = torch.zeros_like(w[..., 0])
+    wx, wy, wz = w.unbind(-1)
+    return torch.stack([z, -wz, wy, wz, z, -wx, -wy, wx, z], dim=-1).reshape(*w.shape[:-1], 3, 3)
+
+
+def pattern_motion(fields: InversePhysics, steps: int, dt: float, substeps: int = 1):
+    """The rigid motion of every pattern, integrated by the same RK2 midpoint rule: x(t) = R_k(t) x(0) + t_k(t).
+
+    For the affine field v = a + ω × x one RK2 step is an affine map of x, so stepping the map (R, t) is exactly
+    stepping every point; a particle that belongs to one pattern moves precisely as :func:`integrate` moves it.
+    Returns R [steps + 1, K, 3, 3], t [steps + 1, K, 3] and the patterns' rotations q [steps + 1, K, 4] (wxyz)."""
+    m = max(1, int(substeps))
+    dts = dt / m
+    n = int(steps) * m
+    t_start = torch.arange(n, dtype=torch.float64) * dts
+    W = fields.twists(torch.cat([t_start, t_start + 0.5 * dts]).to(fields.centres.dtype))
+    u, w = W[..., :3], W[..., 3:]
+    a = u - torch.linalg.cross(w, fields.centres.expand_as(w))
+    a0, w0, am, wm = a[:n], w[:n], a[n:], w[n:]
+    S0, Sm = _skew(w0), _skew(wm)
+    K = fields.config.patterns
+    dtype = fields.centres.dtype
+    R = torch.eye(3, dtype=dtype).expand(K, 3, 3)
+    tr = torch.zeros(K, 3, dtype=dtype)
+    q = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dtype).expand(K, 4)
+    Rs, ts, qs = [R], [tr], [q]
+    for k in range(n):
+        R_mid = R + 0.5 * dts * S0[k] @ R
+        t_mid = tr + 0.5 * dts * (a0[k] + (S0[k] @ tr[..., None])[..., 0])
+        R = R + dts * Sm[k] @ R_mid
+        tr = tr + dts * (am[k] + (Sm[k] @ t_mid[..., None])[..., 0])
+        q = quat_mul(rotvec_quat(wm[k] * dts), q)
+        if (k + 1) % m == 0:
+            Rs.append(R)
+            ts.append(tr)
+            qs.append(q)
+    return torch.stack(Rs), torch.stack(ts), torch.stack(qs)
+
+
+def blend(h: torch.Tensor, x0: torch.Tensor, q0: torch.Tensor | None, R: torch.Tensor, t: torch.Tensor,
+          q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:  # fmt: skip
+    """Positions [N, 3] (and rotations [N, 4]) of particles with mixtures h [N, K] at one time, from the patterns'
+    motion R [K, 3, 3], t [K, 3], q [K, 4]: x = Σ_k h_k (R_k x0 + t_k); the rotation is the h-weighted quaternion
+    average (signs aligned with the particle's dominant pattern) applied to q0. Exact for a particle in one pattern;
+    a linear blend of the patterns' rigid motions otherwise."""
+    x = torch.einsum("nk,nki->ni", h, torch.einsum("kij,nj->nki", R, x0) + t)
+    if q0 is None:
+        return x, None
+    ref = q[h.argmax(dim=1)]  # [N, 4]
+    sign = torch.sign((q[None] * ref[:, None]).sum(-1)).detach()  # [N, K]
+    sign = torch.where(sign == 0, torch.ones_like(sign), sign)
+    qb = torch.einsum("nk,kd->nd", h * sign, q)
+    qb = qb / qb.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return x, quat_mul(qb, q0 / q0.norm(dim=-1, keepdim=True))

@@ -22,7 +22,7 @@ from causalgs.errors import CausalGSError
 from causalgs.model.config import FitConfig
 from causalgs.model.fields import InversePhysics
 from causalgs.model.gaussians import Gaussians
-from causalgs.model.kinematic import integrate
+from causalgs.model.kinematic import blend, pattern_motion
 from causalgs.model.particles import Particles, build_particles
 from causalgs.render.reference import quat_scale_to_cov
 from causalgs.sim.autograd import deformed_covariance, simulate
@@ -107,26 +107,34 @@ class CausalGS(torch.nn.Module):
     def mixtures(self, x: torch.Tensor) -> torch.Tensor:
         return self.fields.mixture(self.fields.code(x))
 
-    def kinematic(self, steps: int, *, rotations: bool = True, index: torch.Tensor | None = None):
-        """Means [steps + 1, N, 3] and quats [steps + 1, N, 4] at frames 0..steps; Gaussians not in ``index``
-        (default: the dynamic ones) stay at their canonical state."""
+    def kinematic(self, steps: int, *, rotations: bool = True, index: torch.Tensor | None = None, frames=None):
+        """Means [F, N, 3] and quats [F, N, 4] at ``frames`` (default 0..steps, all ≤ steps). Gaussians not in
+        ``index`` (default: the dynamic ones) stay at their canonical state."""
         g = self.gaussians
         idx = torch.nonzero(self.dynamic).flatten() if index is None else index
-        x0 = g.means[idx]
-        h = self.mixtures(x0.detach())
-        xs, qs = integrate(self.fields, h, x0, g.quats[idx] if rotations else None, steps, 1.0 / self.fps,
-                           self.config.kinematic.substeps)  # fmt: skip
-        means = g.means[None].expand(steps + 1, -1, -1).clone()
+        frames = list(range(steps + 1)) if frames is None else [int(k) for k in frames]
+        xs, qs = self.trajectories(self.mixtures(g.means[idx].detach()), g.means[idx],
+                                   g.quats[idx] if rotations else None, steps, frames)  # fmt: skip
+        means = g.means[None].expand(len(frames), -1, -1).clone()
         means[:, idx] = xs.to(means.dtype)
         quats = None
         if qs is not None:
-            quats = g.quats[None].expand(steps + 1, -1, -1).clone()
+            quats = g.quats[None].expand(len(frames), -1, -1).clone()
             quats[:, idx] = qs.to(quats.dtype)
         return means, quats
 
+    def trajectories(self, h, x0, q0, steps: int, frames):
+        """Positions [F, n, 3] (and rotations [F, n, 4] if q0 is given) at ``frames`` of particles with mixtures h
+        starting at x0: the patterns' rigid motions integrated by RK2 at dt = 1/fps, blended by h (see
+        :func:`causalgs.model.kinematic.blend`)."""
+        R, t, q = pattern_motion(self.fields, steps, 1.0 / self.fps, self.config.kinematic.substeps)
+        out = [blend(h, x0, q0, R[k], t[k], q[k]) for k in frames]
+        xs = torch.stack([x for x, _ in out])
+        return xs, (torch.stack([r for _, r in out]) if q0 is not None else None)
+
     def kinematic_state(self, frame: int) -> State:
-        means, quats = self.kinematic(int(frame))
-        return State(means[-1], quats[-1])
+        means, quats = self.kinematic(int(frame), frames=[int(frame)])
+        return State(means[0], quats[0])
 
     # -- physical path ----------------------------------------------------------------------------------------------
     def simulator(self) -> Simulator:

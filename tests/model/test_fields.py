@@ -118,3 +118,30 @@ def test_velocity_gradcheck_float64():
         f.f_weight[-1].weight.normal_(0, 0.5)
     p = torch.rand(4, 3, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda q: f.velocity(q, 0.3), (p,))
+
+
+def test_pattern_motion_blend_equals_per_particle_rk2_for_one_pattern_particles():
+    """Stepping each pattern's affine map is exactly stepping its points; a particle of one pattern moves (and
+    rotates) as the per-particle integrator moves it, whatever the twists do in time."""
+    from causalgs.model.kinematic import blend, pattern_motion
+
+    f = _fields(patterns=3)
+    with torch.no_grad():
+        f.f_weight[-1].weight.normal_(0, 0.5)
+        f.f_weight[-1].bias.normal_(0, 0.5)
+    torch.manual_seed(2)
+    x0 = torch.randn(12, 3, dtype=torch.float64)
+    q0 = torch.randn(12, 4, dtype=torch.float64)
+    h = torch.nn.functional.one_hot(torch.arange(12) % 3, 3).double()
+    xs, qs = integrate(f, h, x0, q0, 8, 0.05, substeps=2)
+    R, t, q = pattern_motion(f, 8, 0.05, substeps=2)
+    for k in (0, 3, 8):
+        x, r = blend(h, x0, q0, R[k], t[k], q[k])
+        assert torch.allclose(x, xs[k], atol=1e-12)
+        # the same rotation (a quaternion and its negative are one rotation)
+        assert torch.allclose((r * qs[k]).sum(-1).abs(), torch.ones(12, dtype=torch.float64), atol=1e-12)
+    # A mixed particle moves with the h-weighted blend of its patterns' rigid motions.
+    hm = torch.tensor([[0.25, 0.75, 0.0]], dtype=torch.float64)
+    x, _ = blend(hm, x0[:1], None, R[8], t[8], q[8])
+    expect = 0.25 * (R[8][0] @ x0[0] + t[8][0]) + 0.75 * (R[8][1] @ x0[0] + t[8][1])
+    assert torch.allclose(x[0], expect, atol=1e-12)
