@@ -7,6 +7,14 @@ RK2 (midpoint) at dt = 1/fps (or a fraction of it): for every particle
 and the rotation follows the velocity Jacobian: for v_i = a_i + ω_i × x the Jacobian is [ω_i]×, a pure rotation rate,
 so q ← exp(½ ω_i(t + dt/2) dt) ⊗ q (the midpoint rule again). Both are second order in dt; the tests check the
 orders against a rigid rotation with a known closed form.
+
+Training uses the same rule on the K patterns instead of the N particles (:func:`pattern_motion`): each pattern's
+field is affine in x, so one RK2 step is an affine map and stepping the map (R_k, t_k) steps every point exactly. A
+particle is then placed by blending its patterns' motions with its mixture h (:func:`blend`). For a particle of one
+pattern this is exactly :func:`integrate`; for a mixed one it is a linear blend of rigid motions rather than the
+integral of the blended velocity (they agree to first order in time and both start with the blended velocity). It
+costs O(T·K) for the integration plus O(N·K) per rendered frame, instead of O(T·N) autograd operations — 5× faster
+training at 20k Gaussians. :func:`integrate` remains the per-particle reference the tests hold it to.
 """
 
 from __future__ import annotations
