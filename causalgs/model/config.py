@@ -49,6 +49,7 @@ class PhysicsConfig:
     effects: str = "gravity;ground;walls"  # the model's physics (a spec of causalgs.sim.effects)
     learn: tuple[str, ...] = ("ground.mu",)  # effect parameters trained (names as in Effects.param_names)
     ground: str = "auto"  # "auto": the ground plane's offset from the static Gaussians; "spec": as in effects
+    min_opacity: float = 0.3  # dynamic Gaussians fainter than this are carried, not simulated as matter
     cfl: float = 0.4
     max_substeps: int = 400  # per frame
     lr_mat: float = 5e-3  # f_mat

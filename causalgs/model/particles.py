@@ -58,16 +58,19 @@ class Particles:
 
 
 def build_particles(
-    means: np.ndarray, dynamic: np.ndarray, lo, dx: float, budget: int, capacity: int, seed: int = 0
+    means: np.ndarray, dynamic: np.ndarray, lo, dx: float, budget: int, capacity: int, seed: int = 0,
+    solid: np.ndarray | None = None,
 ) -> Particles:
-    """Particles for the Gaussians ``means[dynamic]`` on a grid of cell ``dx`` whose box starts at ``lo``: 8 per
-    cell, or 1 per cell when 8 would pass ``capacity`` (a large dynamic region on a fixed-capacity store)."""
+    """Particles for the Gaussians ``means[solid]`` (default: ``dynamic``) on a grid of cell ``dx`` whose box starts
+    at ``lo``: 8 per cell, or 1 per cell when 8 would pass ``capacity`` (a large dynamic region on a fixed-capacity
+    store). Every Gaussian of ``dynamic`` is carried by its nearest particle."""
+    solid = dynamic if solid is None else (np.asarray(solid, bool) & np.asarray(dynamic, bool))
     try:
-        return _build(means, dynamic, lo, dx / 2.0, budget, capacity, seed)
+        return _build(means, dynamic, solid, lo, dx / 2.0, budget, capacity, seed)
     except _TooMany:
         pass
     try:
-        return _build(means, dynamic, lo, dx, budget, capacity, seed)
+        return _build(means, dynamic, solid, lo, dx, budget, capacity, seed)
     except _TooMany as e:
         raise CausalGSError(
             f"the dynamic region needs {e.args[0]} particles even at one per cell, more than the simulator's "
@@ -79,14 +82,16 @@ class _TooMany(Exception):
     pass
 
 
-def _build(means: np.ndarray, dynamic: np.ndarray, lo, h: float, budget: int, capacity: int, seed: int) -> Particles:
+def _build(means: np.ndarray, dynamic: np.ndarray, solid: np.ndarray, lo, h: float, budget: int, capacity: int,
+           seed: int) -> Particles:  # fmt: skip
     dyn = np.flatnonzero(dynamic)
-    if len(dyn) == 0:
+    src = np.flatnonzero(solid)
+    if len(src) == 0:
         raise CausalGSError("no dynamic Gaussians to simulate: every Gaussian was classed static")
     rng = np.random.default_rng(seed)
-    chosen = dyn if len(dyn) <= budget else np.sort(rng.choice(dyn, budget, replace=False))
+    chosen = src if len(src) <= budget else np.sort(rng.choice(src, budget, replace=False))
     lo = np.asarray(lo, dtype=np.float64)
-    pts = means[dyn].astype(np.float64)
+    pts = means[src].astype(np.float64)
     ijk = np.floor((pts - lo) / h).astype(np.int64)
     pad = 2
     base = ijk.min(0) - pad

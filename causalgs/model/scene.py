@@ -159,34 +159,38 @@ class CausalGS(torch.nn.Module):
 
     def build_physics(self, seed: int = 0) -> None:
         """Choose the simulation box, the ground plane and the particles (after the kinematic stage, which decides
-        which Gaussians are dynamic and how far they travel)."""
+        which Gaussians are dynamic and how far they travel).
+
+        Particles come from the *solid* dynamic Gaussians (opacity ≥ ``physics.min_opacity``): faint floaters that
+        the kinematic fit happened to move are carried along but are not matter. Bounds use robust percentiles for
+        the same reason. The ground ("auto") is the densest level of the static Gaussians below the moving ones
+        (a floor is a plane full of Gaussians), else the lowest moving point."""
         pc = self.config.physics
         g = self.gaussians
         means = g.means.detach().double()
         dyn = self.dynamic
-        if not bool(dyn.any()):
-            raise CausalGSError("no dynamic Gaussians: the kinematic stage found nothing that moves")
+        solid = dyn & (torch.sigmoid(g.opacities.detach()) >= pc.min_opacity)
+        if not bool(solid.any()):
+            raise CausalGSError("no dynamic Gaussians: the kinematic stage found nothing solid that moves")
         with torch.no_grad():
-            traj, _ = self.kinematic(self.train_frames - 1, rotations=False)
-        moving = traj[:, dyn].double().reshape(-1, 3)
+            traj, _ = self.kinematic(self.train_frames - 1, rotations=False, index=torch.nonzero(solid).flatten())
+        moving = traj[:, solid].double().reshape(-1, 3)
         static = means[~dyn]
+        size = float((self.hi - self.lo).max())
         effects = Effects.from_spec(pc.effects)
         names = effects.param_names()
         flat = effects.flat()
+        m_lo, m_hi = _quantile(moving, 0.001), _quantile(moving, 0.999)
         ground_z = None
         if "ground.d" in names and pc.ground == "auto":
-            # The ground plane under the moving Gaussians: the static Gaussians at or below their lowest point.
-            low = float(moving[:, 2].min())
-            floor = static[:, 2][static[:, 2] <= low + 0.02 * float((self.hi - self.lo).max())]
-            ground_z = float(floor.median()) if len(floor) >= 10 else low
+            ground_z = _ground_level(static[:, 2], float(m_lo[2]), size)
             flat[names.index("ground.d")] = ground_z
-        lo = torch.minimum(moving.min(0).values, static.min(0).values if len(static) else moving.min(0).values)
-        hi = torch.maximum(moving.max(0).values, static.max(0).values if len(static) else moving.max(0).values)
-        if len(static):  # the static scene's footprint in x, y (the floor, the room): the simulation covers it
-            lo[:2] = torch.minimum(moving[:, :2].min(0).values, static[:, :2].min(0).values)
-            hi[:2] = torch.maximum(moving[:, :2].max(0).values, static[:, :2].max(0).values)
-        lo[2] = moving[:, 2].min() if ground_z is None else ground_z
-        hi[2] = moving[:, 2].max()
+        lo, hi = m_lo.clone(), m_hi.clone()
+        if len(static) > 100:  # the static scene's footprint in x, y (the floor, the room): the simulation covers it
+            lo[:2] = torch.minimum(lo[:2], _quantile(static[:, :2], 0.01))
+            hi[:2] = torch.maximum(hi[:2], _quantile(static[:, :2], 0.99))
+        if ground_z is not None:
+            lo[2] = min(ground_z, float(lo[2]))
         side = float((hi - lo).max())
         dx = side / (pc.res - 2 * (WALL_BAND + 1))
         centre = (lo + hi) / 2
@@ -194,7 +198,8 @@ class CausalGS(torch.nn.Module):
         box_lo[2] = lo[2] - (WALL_BAND + 0.5) * dx  # the ground plane just above the bottom wall band
         self.box.copy_(torch.stack([box_lo, box_lo + pc.res * dx]))
         self.effect_params = torch.nn.Parameter(torch.as_tensor(flat, dtype=torch.float64))
-        self.particles = build_particles(means.numpy(), dyn.numpy(), box_lo.numpy(), dx, pc.budget, pc.capacity, seed)
+        self.particles = build_particles(means.numpy(), dyn.numpy(), box_lo.numpy(), dx, pc.budget, pc.capacity, seed,
+                                         solid=solid.numpy())  # fmt: skip
         self._sim = None
 
     def learn_mask(self) -> torch.Tensor:
@@ -242,6 +247,21 @@ class CausalGS(torch.nn.Module):
     # -- rendering --------------------------------------------------------------------------------------------------
     def render(self, state: State, camera, background):
         return self.gaussians.render(camera, tuple(float(b) for b in background), **state.overrides())
+
+
+def _quantile(x: torch.Tensor, q: float) -> torch.Tensor:
+    return torch.quantile(x, q, dim=0) if len(x) <= 5_000_000 else x.min(0).values if q < 0.5 else x.max(0).values
+
+
+def _ground_level(z_static: torch.Tensor, z_low: float, size: float) -> float:
+    """The most populated 1%-of-the-scene-size slab of static Gaussians at or below the moving ones' low point."""
+    z = z_static[z_static <= z_low + 0.02 * size]
+    if len(z) < 50:
+        return z_low
+    width = 0.01 * size
+    bins = torch.floor((z - z.min()) / width).long()
+    peak = int(torch.bincount(bins).argmax())
+    return float(z[bins == peak].median())
 
 
 def scene_bounds(points: np.ndarray, margin: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
