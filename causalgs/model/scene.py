@@ -164,7 +164,7 @@ class CausalGS(torch.nn.Module):
         Particles come from the *solid* dynamic Gaussians (opacity ≥ ``physics.min_opacity``): faint floaters that
         the kinematic fit happened to move are carried along but are not matter. Bounds use robust percentiles for
         the same reason. The ground ("auto") is the densest level of the static Gaussians below the moving ones
-        (a floor is a plane full of Gaussians), else the lowest moving point."""
+        (a floor is a plane full of Gaussians), else the lowest point of the bodies at rest."""
         pc = self.config.physics
         g = self.gaussians
         means = g.means.detach().double()
@@ -180,17 +180,20 @@ class CausalGS(torch.nn.Module):
         effects = Effects.from_spec(pc.effects)
         names = effects.param_names()
         flat = effects.flat()
-        m_lo, m_hi = _quantile(moving, 0.001), _quantile(moving, 0.999)
+        m_lo, m_hi = _quantile(moving, 0.005), _quantile(moving, 0.995)
         ground_z = None
         if "ground.d" in names and pc.ground == "auto":
-            ground_z = _ground_level(static[:, 2], float(m_lo[2]), size)
+            # Below where the bodies start (their fitted paths may dip through the floor; their rest state does not).
+            start_low = float(_quantile(means[solid], 0.001)[2])
+            ground_z = _ground_level(static[:, 2], start_low, size)
             flat[names.index("ground.d")] = ground_z
         lo, hi = m_lo.clone(), m_hi.clone()
         if len(static) > 100:  # the static scene's footprint in x, y (the floor, the room): the simulation covers it
             lo[:2] = torch.minimum(lo[:2], _quantile(static[:, :2], 0.01))
             hi[:2] = torch.maximum(hi[:2], _quantile(static[:, :2], 0.99))
-        if ground_z is not None:
-            lo[2] = min(ground_z, float(lo[2]))
+        if ground_z is not None:  # nothing moves below the ground
+            lo[2] = ground_z
+            hi[2] = max(float(hi[2]), ground_z + 0.1 * size)
         side = float((hi - lo).max())
         dx = side / (pc.res - 2 * (WALL_BAND + 1))
         centre = (lo + hi) / 2
@@ -254,7 +257,7 @@ def _quantile(x: torch.Tensor, q: float) -> torch.Tensor:
 
 
 def _ground_level(z_static: torch.Tensor, z_low: float, size: float) -> float:
-    """The most populated 1%-of-the-scene-size slab of static Gaussians at or below the moving ones' low point."""
+    """The most populated 1%-of-the-scene-size slab of static Gaussians at or below the bodies' low point."""
     z = z_static[z_static <= z_low + 0.02 * size]
     if len(z) < 50:
         return z_low
