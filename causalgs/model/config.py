@@ -41,7 +41,7 @@ class PhysicsConfig:
     """The physical path: differentiable MPM from the inferred causes, trained through renders and consistency."""
 
     enabled: bool = True
-    iterations: int = 60
+    iterations: int = 80
     res: int = 32  # grid cells along the side of the (cubic) simulation box
     segment: int = 16  # substeps per checkpoint segment
     budget: int = 1500  # dynamic Gaussians that are particles themselves (the rest follow their nearest particle)
@@ -52,14 +52,14 @@ class PhysicsConfig:
     min_opacity: float = 0.3  # dynamic Gaussians fainter than this are carried, not simulated as matter
     cfl: float = 0.4
     max_substeps: int = 400  # per frame
-    lr_mat: float = 5e-3  # f_mat
-    lr_vel: float = 2e-4  # f_vel / f_neck / f_weight through the initial velocity
+    lr_mat: float = 1e-2  # f_mat
+    lr_vel: float = 1e-3  # f_vel / f_neck / f_weight through the initial velocity
     lr_effects: float = 2e-2
     window_start: int = 8
     window_ramp: float = 0.5
     views_per_iter: int = 2
     lambda_image: float = 1.0
-    lambda_consistency: float = 1.0  # on mean squared distance to the kinematic positions, in grid cells²
+    lambda_consistency: float = 0.02  # on the mean Charbonnier distance to the kinematic positions, in grid cells
 
 
 @dataclass
@@ -107,13 +107,13 @@ PRESETS: dict[str, dict] = {
                       "opacity_reset_every": 0, "max_gaussians": 20_000, "sh_degree": 1,
                       "sh_degree_every": 500},
         "kinematic": {"iterations": 1200},
-        "physics": {"iterations": 40},
+        "physics": {"iterations": 80},
     },
     "full": {
         "canonical": {"iterations": 5000, "densify_from": 300, "densify_until": 3500, "densify_every": 100,
                       "opacity_reset_every": 2000, "max_gaussians": 40_000, "sh_degree": 2, "sh_degree_every": 1000},
         "kinematic": {"iterations": 3000},
-        "physics": {"iterations": 120, "budget": 3000},
+        "physics": {"iterations": 160, "budget": 3000},
     },
 }
 
