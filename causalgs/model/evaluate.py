@@ -4,7 +4,7 @@ Dynamics (``--dynamics``):
 
 - ``mpm``: the simulator from t = 0 with the inferred causes (the model's prediction);
 - ``velocity``: the kinematic field integrated past the observed window (f_weight(t) extrapolated);
-- ``frozen``: the scene held at the last observed frame (a baseline);
+- ``frozen``: the scene held at the last observed frame by the kinematic-only model (a baseline);
 - ``kinematic-only``: ``velocity`` of the model saved at the end of the kinematic stage (``kinematic.pt``), trained
   without the physical path (the baseline the simulator has to beat).
 
@@ -70,7 +70,9 @@ def render_images(model: CausalGS, timeline: Timeline, frames: list[Frame], dyna
 
 
 def _model_for(run_dir, dynamics: str):
-    which = "kinematic.pt" if dynamics == "kinematic-only" else "checkpoint.pt"
+    # The frozen baseline holds the best fit of the last observed frame: the kinematic model before the physical
+    # stage (which trains the velocity field only through the initial velocity, and so may move its later frames).
+    which = "kinematic.pt" if dynamics in ("kinematic-only", "frozen") else "checkpoint.pt"
     return load_model(run_dir, which)
 
 
@@ -78,6 +80,11 @@ def evaluate(run_dir, *, dynamics=EVAL_DYNAMICS, lpips_nets=("alex", "vgg"), pro
     """Score interpolation and extrapolation of a run and write ``RUN/metrics.json`` (see the module docstring)."""
     run_dir = Path(run_dir)
     result: dict = {"interpolation": {}, "extrapolation": {}}
+    previous = run_dir / "metrics.json"
+    if previous.is_file():  # keep the rows of dynamics not scored this time
+        old = read_json(previous, "metrics")
+        for key in result:
+            result[key].update({d: v for d, v in old.get(key, {}).items() if d not in dynamics})
     for dyn in dynamics:
         model, data, tl = _model_for(run_dir, dyn)
         if dyn == "mpm" and model.particles is None:
