@@ -34,6 +34,7 @@ from causalgs import _ti
 from causalgs.errors import CausalGSError
 from causalgs.metrics import ssim
 from causalgs.model.gaussians import PARAMS, Gaussians, quat_to_rotmat
+from causalgs.settings import check_keys
 
 __all__ = [
     "CanonicalConfig",
@@ -125,12 +126,7 @@ class CanonicalConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> CanonicalConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise CausalGSError(
-                f"unknown canonical setting(s): {', '.join(unknown)} (settings: {', '.join(sorted(known))})"
-            )
+        check_keys(cls, d, "canonical")
         return cls(**d)
 
     def to_dict(self) -> dict:

@@ -19,6 +19,7 @@ from causalgs.errors import CausalGSError
 from causalgs.io import write_text
 from causalgs.model.canonical import CanonicalConfig
 from causalgs.model.fields import FieldsConfig
+from causalgs.settings import check_keys
 
 
 @dataclass
@@ -138,10 +139,7 @@ def from_dict(cls, d: dict, where: str = "config"):
     if not isinstance(d, dict):
         raise CausalGSError(f"{where}: expected a table of settings, got {d!r}")
     hints = get_type_hints(cls)
-    names = {f.name: f for f in dataclasses.fields(cls) if f.init}
-    unknown = sorted(set(d) - set(names))
-    if unknown:
-        raise CausalGSError(f"{where}: unknown setting(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
+    check_keys(cls, d, where)
     kwargs: dict[str, Any] = {}
     for k, v in d.items():
         t = hints[k]

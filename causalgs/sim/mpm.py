@@ -35,6 +35,7 @@ import torch
 
 from causalgs import _ti
 from causalgs.errors import CausalGSError
+from causalgs.settings import check_keys
 from causalgs.sim import kernels
 from causalgs.sim.effects import Effects
 from causalgs.sim.grid import GridGeometry, grid_fields
@@ -92,12 +93,7 @@ class SimConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> SimConfig:
-        known = {f.name for f in fields(cls) if f.init}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise CausalGSError(
-                f"unknown simulator setting(s): {', '.join(unknown)} (settings: {', '.join(sorted(known))})"
-            )
+        check_keys(cls, d, "simulator")
         return cls(**d)
 
     def to_dict(self) -> dict:
