@@ -10,6 +10,9 @@ import click
 from causalgs.errors import CausalGSError
 from cli.options import device_option, seed_option
 
+# causalgs.model.evaluate.DYNAMICS, spelled out so that --help does not import torch (a test holds them equal)
+DYNAMICS = ("mpm", "mpm-open", "velocity", "frozen", "kinematic-only")
+
 
 def _progress_callbacks(enabled: bool = True):
     """A rich progress bar with one task per stage; returns (callback, context manager)."""
@@ -103,9 +106,10 @@ def _apply_override(d: dict, item: str) -> None:
 @click.command()
 @click.argument("run", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--frames", type=click.IntRange(min=1), default=22, show_default=True, help="Future frames to predict.")
-@click.option("--dynamics", type=click.Choice(["mpm", "velocity", "frozen", "kinematic-only"]), default="mpm",
-              show_default=True, help="mpm: the simulator; velocity: the kinematic field extrapolated; frozen: the "
-              "last observed frame; kinematic-only: the model before its physical stage.")
+@click.option("--dynamics", type=click.Choice(DYNAMICS), default="mpm", show_default=True,
+              help="mpm: the simulator continuing from the last observed frame; mpm-open: the simulator replaying "
+              "everything from t = 0; velocity: the kinematic field extrapolated; frozen: the last observed frame; "
+              "kinematic-only: the model before its physical stage.")
 @click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder.  [default: RUN/predict/DYNAMICS]")
 @click.option("--no-video", is_flag=True, help="Write PNGs only.")
@@ -140,8 +144,8 @@ def predict(run, frames, dynamics, out, no_video, lpips_nets, device):
 
 @click.command(name="eval")
 @click.argument("run", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--dynamics", multiple=True, type=click.Choice(["mpm", "velocity", "frozen", "kinematic-only"]),
-              help="Dynamics to score (repeatable).  [default: mpm, frozen, kinematic-only]")
+@click.option("--dynamics", multiple=True, type=click.Choice(DYNAMICS),
+              help="Dynamics to score (repeatable).  [default: mpm, mpm-open, frozen, kinematic-only]")
 @click.option("--lpips", "lpips_nets", default="alex,vgg", show_default=True,
               help="LPIPS networks: 'alex', 'vgg', 'alex,vgg' or 'none' (VGG is ~20x slower on a CPU).")
 @click.option("--json", "as_json", is_flag=True, help="Print metrics.json to stdout.")

@@ -32,7 +32,8 @@ WHITE = (1.0, 1.0, 1.0)
 )
 @click.option("--time", "time_", type=float,
               help="Dataset time of a fitted RUN (0 = first frame, 1 = last frame of the video).")
-@click.option("--dynamics", type=click.Choice(["auto", "mpm", "velocity", "frozen"]), default="auto", show_default=True,
+@click.option("--dynamics", type=click.Choice(["auto", "mpm", "mpm-open", "velocity", "frozen"]), default="auto",
+              show_default=True,
               help="Fitted RUN with --time: auto = kinematic inside the observed window, the simulator beyond it.")
 @click.option(
     "--out",

@@ -29,9 +29,12 @@ class KinematicConfig:
     iterations: int = 1500
     lr: float = 2e-3  # Adam, f_vel / f_neck / f_weight
     lr_centres: float = 1e-3  # the pattern centres (metres)
-    window_start: int = 4  # frames in the trained window at the start of the curriculum
+    window_start: int = 2  # frames in the trained window at the start of the curriculum
     window_ramp: float = 0.6  # fraction of the iterations after which the window covers every training frame
+    window_power: float = 2.0  # the window grows as (iteration / ramp)^power: slowly over the first frames
     views_per_iter: int = 2  # images rendered (and averaged in the loss) per iteration
+    newest_frames: int = 3  # every other image is drawn from this many newest frames of the window (0: uniform)
+    blur: tuple[float, ...] = (0.02, 0.05, 0.12)  # σ of the blurred loss terms, as fractions of the image size
     substeps: int = 1  # RK2 steps per frame interval
     lambda_dssim: float = 0.2
     static_threshold: float = 0.01  # a Gaussian that moves less than this fraction of the scene size is static
@@ -48,7 +51,9 @@ class PhysicsConfig:
     budget: int = 1500  # dynamic Gaussians that are particles themselves (the rest follow their nearest particle)
     capacity: int = 8192  # particle rows of the simulator's store (fixed, so kernels compile once)
     effects: str = "gravity;ground;walls"  # the model's physics (a spec of causalgs.sim.effects)
-    learn: tuple[str, ...] = ("ground.mu",)  # effect parameters trained (names as in Effects.param_names)
+    # Effect parameters trained (names as in Effects.param_names). The ground's offset is learned from its "auto"
+    # start: the simulated contact of particles a few centimetres apart sits a fraction of a cell off the plane.
+    learn: tuple[str, ...] = ("ground.mu", "ground.d")
     ground: str = "auto"  # "auto": the ground plane's offset from the static Gaussians; "spec": as in effects
     min_opacity: float = 0.3  # dynamic Gaussians fainter than this are carried, not simulated as matter
     cfl: float = 0.4
@@ -58,6 +63,8 @@ class PhysicsConfig:
     lr_effects: float = 2e-2
     window_start: int = 8
     window_ramp: float = 0.5
+    shooting: int = 12  # every other iteration: a segment of this many frames from the kinematic fit's state at a
+    # random observed frame (multiple shooting: materials and effects from short, well-conditioned rollouts; 0: off)
     views_per_iter: int = 2
     lambda_image: float = 1.0
     lambda_consistency: float = 0.02  # on the mean Charbonnier distance to the kinematic positions, in grid cells

@@ -2,7 +2,10 @@
 
 Dynamics (``--dynamics``):
 
-- ``mpm``: the simulator from t = 0 with the inferred causes (the model's prediction);
+- ``mpm``: the model's prediction: inside the observed window the simulator from t = 0 with the inferred causes; after
+  it the simulator continuing from the last observed frame's state (the kinematic fit's positions, deformation and
+  velocity there) with the inferred materials and effects, as a forecast starts from the latest measurement;
+- ``mpm-open``: the simulator from t = 0 for every frame (open loop: the whole sequence replayed from the causes);
 - ``velocity``: the kinematic field integrated past the observed window (f_weight(t) extrapolated);
 - ``frozen``: the scene held at the last observed frame by the kinematic-only model (a baseline);
 - ``kinematic-only``: ``velocity`` of the model saved at the end of the kinematic stage (``kinematic.pt``), trained
@@ -31,8 +34,9 @@ from causalgs.model.scene import CausalGS, State
 from causalgs.model.timeline import Timeline
 from causalgs.render.views import to_uint8, write_video
 
-DYNAMICS = ("mpm", "velocity", "frozen", "kinematic-only")
-EVAL_DYNAMICS = ("mpm", "frozen", "kinematic-only")  # what `eval` scores unless asked: the model and its baselines
+DYNAMICS = ("mpm", "mpm-open", "velocity", "frozen", "kinematic-only")
+# what `eval` scores unless asked: the model, its open-loop replay and the baselines
+EVAL_DYNAMICS = ("mpm", "mpm-open", "frozen", "kinematic-only")
 
 
 def states(model: CausalGS, frames, dynamics: str) -> dict[int, State]:
@@ -42,11 +46,19 @@ def states(model: CausalGS, frames, dynamics: str) -> dict[int, State]:
         return {}
     last = frames[-1]
     with torch.no_grad():
-        if dynamics == "mpm":
+        if dynamics in ("mpm", "mpm-open"):
             if model.particles is None:
-                raise CausalGSError("this run has no physical stage (fit with physics enabled to predict with 'mpm')")
-            out = model.simulate(frames)
-            return dict(zip(frames, model.physical_states(out["x"], out["F"]), strict=True))
+                raise CausalGSError(f"this run has no physical stage (fit with physics enabled to use '{dynamics}')")
+            inside = frames if dynamics == "mpm-open" else [k for k in frames if k < model.train_frames]
+            after = [k for k in frames if k not in inside]
+            result = {}
+            if inside:
+                out = model.simulate(inside)
+                result.update(zip(inside, model.physical_states(out["x"], out["F"]), strict=True))
+            if after:
+                out = model.forecast(after)
+                result.update(zip(after, model.physical_states(out["x"], out["F"]), strict=True))
+            return result
         if dynamics in ("velocity", "kinematic-only"):
             means, quats = model.kinematic(last, frames=frames)
             return {k: State(means[i], quats[i]) for i, k in enumerate(frames)}
@@ -87,12 +99,12 @@ def evaluate(run_dir, *, dynamics=EVAL_DYNAMICS, lpips_nets=("alex", "vgg"), pro
             result[key].update({d: v for d, v in old.get(key, {}).items() if d not in dynamics})
     for dyn in dynamics:
         model, data, tl = _model_for(run_dir, dyn)
-        if dyn == "mpm" and model.particles is None:
+        if dyn in ("mpm", "mpm-open") and model.particles is None:
             continue
         bg = data.background
         for split, key in (("val", "interpolation"), ("test", "extrapolation")):
             frames = data.splits[split]
-            if not frames or (split == "val" and dyn in ("frozen",)):
+            if not frames or (split == "val" and dyn in ("frozen", "mpm-open")):  # mpm-open = mpm inside
                 continue
             preds = render_images(model, tl, frames, dyn, bg)
             result[key][dyn] = image_metrics(preds, [f.image for f in frames], lpips_nets=lpips_nets)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -38,11 +39,37 @@ from causalgs.model.timeline import Timeline
 from causalgs.sim.effects import REGISTRY
 
 STAGES = ("canonical", "kinematic", "physics", "done")
+LENGTHS = ("d",)  # effect parameters measured in metres (their steps are scaled by LENGTH_STEP)
+LENGTH_STEP = 0.05
 
 
 def image_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_dssim: float) -> torch.Tensor:
     """L1 + λ·(1 − SSIM), the 3DGS photometric loss."""
     return (1 - lambda_dssim) * (pred - gt).abs().mean() + lambda_dssim * (1 - ssim(pred, gt))
+
+
+def blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
+    """An image [H, W, C] smoothed by a separable Gaussian of ``sigma`` pixels (edges replicated)."""
+    r = max(1, math.ceil(3 * sigma))
+    x = torch.arange(-r, r + 1, dtype=img.dtype)
+    g = torch.exp(-0.5 * (x / sigma) ** 2)
+    g = g / g.sum()
+    c = img.shape[-1]
+    t = torch.nn.functional.pad(img.permute(2, 0, 1)[None], (r, r, r, r), mode="replicate")
+    t = torch.nn.functional.conv2d(t, g.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+    t = torch.nn.functional.conv2d(t, g.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+    return t[0].permute(1, 2, 0)
+
+
+def tracking_loss(pred: torch.Tensor, gt: torch.Tensor, lambda_dssim: float, blurs=()) -> torch.Tensor:
+    """The photometric loss plus L1 between blurred copies of both images (``blurs``: σ as fractions of the image
+    size). A small fast body moves by about its own size between frames; once its render no longer overlaps its image
+    the sharp loss has no gradient left to pull it back, while the blurred terms still do (coarse to fine)."""
+    loss = image_loss(pred, gt, lambda_dssim)
+    size = max(pred.shape[0], pred.shape[1])
+    for s in blurs:
+        loss = loss + (blur(pred, s * size) - blur(gt, s * size)).abs().mean()
+    return loss
 
 
 def _finite(loss: torch.Tensor, stage: str, it: int) -> None:
@@ -120,18 +147,22 @@ class Trainer:
     def _gt(self, frame: Frame) -> torch.Tensor:
         return torch.from_numpy(frame.image).to(_ti.torch_dtype())
 
-    def _sample(self, window: int, count: int, lowest: int = 0) -> list[tuple[int, Frame]]:
+    def _sample(self, window: int, count: int, lowest: int = 0, newest: int = 0) -> list[tuple[int, Frame]]:
+        """``count`` training images of frames in [lowest, window); with ``newest`` > 0 every other one is drawn from
+        the newest ``newest`` frames of the window (where the curriculum has just extended it)."""
         keys = [k for k in self.train if lowest <= k < window]
+        front = [k for k in keys if k >= window - newest] if newest > 0 else []
         out = []
-        for _ in range(count):
-            k = keys[int(self.rng.integers(len(keys)))]
+        for i in range(count):
+            pool = front if front and i % 2 == 0 else keys
+            k = pool[int(self.rng.integers(len(pool)))]
             frames = self.train[k]
             out.append((k, frames[int(self.rng.integers(len(frames)))]))
         return out
 
-    def _window(self, it: int, iterations: int, start: int, ramp: float) -> int:
+    def _window(self, it: int, iterations: int, start: int, ramp: float, power: float = 1.0) -> int:
         n = self.timeline.train_frames
-        frac = min(1.0, it / max(1.0, ramp * iterations))
+        frac = min(1.0, it / max(1.0, ramp * iterations)) ** power
         return int(min(n, max(2, round(start + frac * (n - start)))))
 
     def _payload(self, stage: str, it: int, optimizer=None) -> dict:
@@ -215,14 +246,14 @@ class Trainer:
         if opt_state is not None:
             opt.load_state_dict(opt_state)
         for it in range(start, kc.iterations):
-            window = self._window(it, kc.iterations, kc.window_start, kc.window_ramp)
-            picks = self._sample(window, kc.views_per_iter)
+            window = self._window(it, kc.iterations, kc.window_start, kc.window_ramp, kc.window_power)
+            picks = self._sample(window, kc.views_per_iter, newest=kc.newest_frames)
             steps = max(k for k, _ in picks)
             means, quats = m.kinematic(steps, frames=[k for k, _ in picks])
             loss = 0.0
             for i, (_, frame) in enumerate(picks):
                 img, _, _ = m.gaussians.render(frame.camera, self.bg, means=means[i], quats=quats[i])
-                loss = loss + image_loss(img, self._gt(frame), kc.lambda_dssim) / len(picks)
+                loss = loss + tracking_loss(img, self._gt(frame), kc.lambda_dssim, kc.blur) / len(picks)
             _finite(loss, "kinematic", it)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -232,6 +263,7 @@ class Trainer:
             self.stage_seconds["kinematic"] = time.monotonic() - t0
             self._maybe_save("kinematic", it + 1, opt, force=it + 1 == kc.iterations)
             self.progress("kinematic", it + 1, kc.iterations, rec)
+        m.keep_track()
         self._split_static()
         self.stage_seconds["kinematic"] = time.monotonic() - t0
         self.run.save(self._payload("physics", 0))
@@ -259,6 +291,11 @@ class Trainer:
                           "effects": effects})  # fmt: skip
         f = m.fields
         mask = m.learn_mask()
+        # Per-parameter step sizes: plane offsets (metres) move at a twentieth of the rate of dimensionless parameters
+        # such as friction coefficients, so one Adam step shifts a ground plane by about a millimetre.
+        names = m.simulator().effects.param_names()
+        step_scale = torch.tensor([LENGTH_STEP if n.split("[")[0].split(".")[1] in LENGTHS else 1.0 for n in names],
+                                  dtype=torch.float64)  # fmt: skip
         nets = [*f.f_vel.parameters(), *f.f_neck.parameters(), *f.f_weight.parameters()]
         opt = torch.optim.Adam([
             {"params": list(f.f_mat.parameters()), "lr": pc.lr_mat},
@@ -268,20 +305,27 @@ class Trainer:
         if opt_state is not None:
             opt.load_state_dict(opt_state)
         dx = float((m.box[1] - m.box[0]).max()) / pc.res
+        n = self.timeline.train_frames
         for it in range(start, pc.iterations):
             window = self._window(it, pc.iterations, pc.window_start, pc.window_ramp)
-            frames = list(range(1, window))
-            out = m.simulate(frames)
+            begin = 0
+            if pc.shooting > 0 and it % 2 == 1 and n > 2:  # a segment from the tracked state at a random frame
+                begin = int(self.rng.integers(1, n - 1))
+                window = min(n, begin + pc.shooting + 1)
+            frames = list(range(begin + 1, window))
+            out = m.simulate(frames, start=begin)
             with torch.no_grad():
-                target, _ = m.trajectories(out["h"].detach(), out["x0"].detach(), None, window - 1, frames)
+                x0 = out["x0"].detach()
+                target, _ = m.trajectories(m.mixtures(x0), x0, None, window - 1, frames)
             # Charbonnier distance in grid cells: a robust pull towards the kinematic fit, which may have lost track
             # of a body late in the window (a squared loss would let those frames dominate).
             d2 = ((out["x"] - target.to(out["x"].dtype)) ** 2).sum(-1) / dx**2
             cons = (torch.sqrt(d2 + 1.0) - 1.0).mean()
-            picks = self._sample(window, pc.views_per_iter, lowest=1)
+            picks = self._sample(window, pc.views_per_iter, lowest=begin + 1)
             img_loss = 0.0
             for k, frame in picks:
-                (state,) = m.physical_states(out["x"][k - 1 : k], out["F"][k - 1 : k])
+                i = k - begin - 1
+                (state,) = m.physical_states(out["x"][i : i + 1], out["F"][i : i + 1])
                 img, _, _ = m.render(state, frame.camera, self.bg)
                 img_loss = img_loss + image_loss(img, self._gt(frame), self.config.kinematic.lambda_dssim) / len(picks)
             loss = pc.lambda_image * img_loss + pc.lambda_consistency * cons
@@ -290,11 +334,14 @@ class Trainer:
             loss.backward()
             if m.effect_params.grad is not None:
                 m.effect_params.grad[~mask] = 0.0
+            before = m.effect_params.detach().clone()
             opt.step()
-            with torch.no_grad():  # keep the friction coefficient and the like inside their bounds
-                m.effect_params.copy_(torch.as_tensor(_clamped(m, m.effect_params.detach().numpy())))
+            with torch.no_grad():  # scaled steps; the friction coefficient and the like kept inside their bounds
+                stepped = before + step_scale * (m.effect_params.detach() - before)
+                m.effect_params.copy_(torch.as_tensor(_clamped(m, stepped.numpy())))
             rec = {"stage": "physics", "it": it + 1, "loss": float(loss.detach()), "image": float(img_loss.detach()),
-                   "consistency": float(cons.detach()), "window": window, "E_median": float(out["E"].detach().median()),
+                   "consistency": float(cons.detach()), "start": begin, "window": window,
+                   "E_median": float(out["E"].detach().median()),
                    "nu_median": float(out["nu"].detach().median()),
                    **{n: float(v) for n, v, k in zip(m.simulator().effects.param_names(), m.effect_params.tolist(),
                                                      mask.tolist(), strict=True) if k}}  # fmt: skip

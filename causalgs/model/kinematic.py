@@ -80,7 +80,7 @@ def integrate(
     return torch.stack(xs), (torch.stack(qs) if qs is not None else None)
 
 
-def _skew(w: torch.Tensor) -> torch.Tensor:
+def skew(w: torch.Tensor) -> torch.Tensor:
     """[..., 3] → [..., 3, 3] with skew(w) @ x = w × x."""
     z = torch.zeros_like(w[..., 0])
     wx, wy, wz = w.unbind(-1)
@@ -101,7 +101,7 @@ def pattern_motion(fields: InversePhysics, steps: int, dt: float, substeps: int 
     u, w = W[..., :3], W[..., 3:]
     a = u - torch.linalg.cross(w, fields.centres.expand_as(w))
     a0, w0, am, wm = a[:n], w[:n], a[n:], w[n:]
-    S0, Sm = _skew(w0), _skew(wm)
+    S0, Sm = skew(w0), skew(wm)
     K = fields.config.patterns
     dtype = fields.centres.dtype
     R = torch.eye(3, dtype=dtype).expand(K, 3, 3)

@@ -73,6 +73,11 @@ class CausalGS(torch.nn.Module):
         self.fps = float(fps)
         self.train_frames = int(train_frames)  # frames 0..train_frames-1 are observed
         self.fields = InversePhysics(config.fields, lo, hi, duration=(train_frames - 1) / fps)
+        # The kinematic fit of the observed frames, kept as it stood at the end of the kinematic stage: the physical
+        # stage trains ``fields`` further (through the initial velocity), which may move its later frames.
+        self.tracked = InversePhysics(config.fields, lo, hi, duration=(train_frames - 1) / fps)
+        self.tracked.requires_grad_(False)
+        self.register_buffer("has_tracked", torch.zeros((), dtype=torch.bool))
         self.register_buffer("lo", torch.as_tensor(lo, dtype=torch.float64))
         self.register_buffer("hi", torch.as_tensor(hi, dtype=torch.float64))
         self.register_buffer("dynamic", torch.ones(gaussians.n, dtype=torch.bool))
@@ -101,11 +106,28 @@ class CausalGS(torch.nn.Module):
                     self.effect_params = torch.nn.Parameter(new)
                 else:
                     self.register_buffer(name, new)
+        if prefix + "has_tracked" not in state_dict:  # a model saved before the tracked copy existed
+            for k in [k for k in state_dict if k.startswith(prefix + "fields.")]:
+                state_dict[prefix + "tracked." + k[len(prefix + "fields.") :]] = state_dict[k]
+            state_dict[prefix + "has_tracked"] = torch.zeros((), dtype=torch.bool)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def keep_track(self) -> None:
+        """Freeze the kinematic fit as it stands (the end of the kinematic stage): from now on the kinematic path,
+        the consistency targets and the forecast's starting state use this copy."""
+        with torch.no_grad():
+            self.tracked.load_state_dict(self.fields.state_dict())
+            self.has_tracked.fill_(True)
+
+    @property
+    def kinematic_fields(self) -> InversePhysics:
+        return self.tracked if bool(self.has_tracked) else self.fields
 
     # -- kinematic path ---------------------------------------------------------------------------------------------
     def mixtures(self, x: torch.Tensor) -> torch.Tensor:
-        return self.fields.mixture(self.fields.code(x))
+        """h of the kinematic path (the tracked fit once it exists); the causes use ``fields`` directly."""
+        f = self.kinematic_fields
+        return f.mixture(f.code(x))
 
     def kinematic(self, steps: int, *, rotations: bool = True, index: torch.Tensor | None = None, frames=None):
         """Means [F, N, 3] and quats [F, N, 4] at ``frames`` (default 0..steps, all ≤ steps). Gaussians not in
@@ -127,7 +149,7 @@ class CausalGS(torch.nn.Module):
         """Positions [F, n, 3] (and rotations [F, n, 4] if q0 is given) at ``frames`` of particles with mixtures h
         starting at x0: the patterns' rigid motions integrated by RK2 at dt = 1/fps, blended by h (see
         :func:`causalgs.model.kinematic.blend`)."""
-        R, t, q = pattern_motion(self.fields, steps, 1.0 / self.fps, self.config.kinematic.substeps)
+        R, t, q = pattern_motion(self.kinematic_fields, steps, 1.0 / self.fps, self.config.kinematic.substeps)
         out = [blend(h, x0, q0, R[k], t[k], q[k]) for k in frames]
         xs = torch.stack([x for x, _ in out])
         return xs, (torch.stack([r for _, r in out]) if q0 is not None else None)
@@ -216,20 +238,79 @@ class CausalGS(torch.nn.Module):
     def causes(self) -> dict[str, torch.Tensor]:
         """Initial velocity and materials of every particle (differentiable in the fields)."""
         p = self.particles
-        x0 = p.x0.to(self.fields.centres.dtype)
-        h = self.mixtures(x0)
-        v0 = self.fields.velocity(x0, 0.0, h)
+        f = self.fields
+        x0 = p.x0.to(f.centres.dtype)
+        h = f.mixture(f.code(x0))
+        v0 = f.velocity(x0, 0.0, h)
         return {"x0": x0, "v0": v0, "h": h, **self.fields.materials(x0)}
 
-    def simulate(self, frames) -> dict[str, torch.Tensor]:
-        """Particle x, F [T, P, ...] at the given frame indices (sorted, ≥ 0) through the differentiable MPM."""
+    def simulate(self, frames, start: int = 0) -> dict[str, torch.Tensor]:
+        """Particle x, v, F [T, P, ...] at the given frame indices (sorted, > ``start``, or ≥ 0 from the start)
+        through the differentiable MPM, with the inferred materials and effects. From ``start`` = 0 the particles
+        start from the inferred causes (canonical positions, the initial velocity field); from a later frame they start
+        from the kinematic fit's state there (:meth:`observed_state`, a constant): a shooting segment in training, the
+        forecast after the observed window."""
         sim = self.simulator()
         c = self.causes()
         dt = _ti.torch_dtype()
-        times = [float(f) / self.fps for f in frames]
-        x, v, F = simulate(sim, c["x0"].to(dt), c["v0"].to(dt), c["E"].to(dt), c["nu"].to(dt), c["density"].to(dt),
-                           times, self.effect_params.to(dt))  # fmt: skip
+        start = int(start)
+        if start == 0:
+            x0, v0, C0, F0 = c["x0"], c["v0"], None, None
+        else:
+            s = self.observed_state(start)
+            x0, v0, C0, F0 = s["x"], s["v"], s["C"].to(dt), s["F"].to(dt)
+        times = [(float(f) - start) / self.fps for f in frames]
+        x, v, F = simulate(sim, x0.to(dt), v0.to(dt), c["E"].to(dt), c["nu"].to(dt), c["density"].to(dt), times,
+                           self.effect_params.to(dt), C0=C0, F0=F0)  # fmt: skip
         return {"x": x, "v": v, "F": F, **c}
+
+    def observed_state(self, frame: int) -> dict[str, torch.Tensor]:
+        """The particles' state at ``frame`` by the kinematic fit (the tracked copy).
+
+        - x: the tracked positions, kept inside the simulation domain (off the wall bands; not onto the ground plane,
+          which simulated bodies rest a fraction of a cell into);
+        - F = ∂x/∂x0 by forward-mode autodiff through the mixtures and the patterns' motion, kept a rotation times a
+          stretch within [1/STRETCH, STRETCH] per axis: where mixtures change quickly a blend of rigid motions can
+          shear or even invert a neighbourhood, a state no elastic material starts from;
+        - v: the slope at ``frame`` of a least-squares parabola through the tracked positions of the last
+          ``VELOCITY_FRAMES`` frames. The field's own velocity at the end of the fitted window is its least
+          constrained value; a parabola is exact for free fall and gives zero for a body at rest;
+        - C = 0: the particle velocities carry any rotation."""
+        p = self.particles
+        f = self.kinematic_fields
+        x0 = p.x0.to(f.centres.dtype)
+        k = int(frame)
+
+        def place(x):
+            return self.trajectories(self.mixtures(x), x, None, k, [k])[0][0]
+
+        with torch.enable_grad():
+            cols = [torch.func.jvp(place, (x0,), (torch.zeros_like(x0).index_fill_(1, torch.tensor([i]), 1.0),))
+                    for i in range(3)]  # fmt: skip
+        x = cols[0][0].detach()
+        F = _admissible(torch.stack([c[1].detach() for c in cols], dim=-1))
+        with torch.no_grad():
+            if k >= 2:  # the slope at k of a least-squares parabola through the last VELOCITY_FRAMES tracked positions
+                ks = list(range(max(0, k - VELOCITY_FRAMES + 1), k + 1))
+                xs, _ = self.trajectories(self.mixtures(x0), x0, None, k, ks)
+                v = torch.einsum("t,tnd->nd", _slope_weights(len(ks), self.fps).to(xs.dtype), xs)
+            else:
+                a, w = f.affine(self.mixtures(x0), torch.tensor([k / self.fps], dtype=x0.dtype))
+                v = a[0] + torch.linalg.cross(w[0], x)
+        dx = float((self.box[1] - self.box[0]).max()) / self.config.physics.res
+        band = WALL_BAND * dx
+        x = torch.minimum(torch.maximum(x, self.box[0].to(x.dtype) + band), self.box[1].to(x.dtype) - band)
+        return {"x": x, "F": F, "v": v, "C": torch.zeros_like(F)}
+
+    def forecast(self, frames) -> dict[str, torch.Tensor]:
+        """Particle x, v, F [T, P, ...] at frame indices after the observed window, simulated from the last observed
+        frame's state with the inferred materials and effects: the prediction of the future from what has been
+        seen, rather than a replay of the whole sequence from t = 0."""
+        last = self.train_frames - 1
+        frames = [int(k) for k in frames]
+        if not frames or min(frames) <= last:
+            raise CausalGSError(f"forecast frames must come after the last observed frame {last}")
+        return self.simulate(frames, start=last)
 
     def physical_states(self, x: torch.Tensor, F: torch.Tensor) -> list[State]:
         """Gaussian states (means, covariances) for simulated particle states x [T, P, 3], F [T, P, 3, 3]."""
@@ -250,6 +331,29 @@ class CausalGS(torch.nn.Module):
     # -- rendering --------------------------------------------------------------------------------------------------
     def render(self, state: State, camera, background):
         return self.gaussians.render(camera, tuple(float(b) for b in background), **state.overrides())
+
+
+STRETCH = 1.25
+VELOCITY_FRAMES = 6
+
+
+def _slope_weights(m: int, fps: float) -> torch.Tensor:
+    """w [m] with Σ_t w_t x_t the derivative at the last sample of the least-squares parabola (a line for m = 2)
+    through samples x_t at frames spaced 1/fps apart."""
+    t = torch.arange(m, dtype=torch.float64) - (m - 1)  # frames before the last, last at 0
+    A = torch.stack([torch.ones_like(t), t, t * t], dim=1)[:, : min(3, m)]
+    coef = torch.linalg.pinv(A)  # [terms, m]
+    return coef[1] * fps
+
+
+def _admissible(F: torch.Tensor) -> torch.Tensor:
+    """F [n, 3, 3] with its rotation kept (reflections turned into rotations) and its principal stretches clamped to
+    [1/STRETCH, STRETCH]."""
+    U, S, Vh = torch.linalg.svd(F.double())
+    flip = torch.linalg.det(U @ Vh) < 0
+    U = torch.where(flip[:, None, None], U * torch.tensor([1.0, 1.0, -1.0], dtype=U.dtype), U)
+    S = S.clamp(1.0 / STRETCH, STRETCH)
+    return (U @ torch.diag_embed(S) @ Vh).to(F.dtype)
 
 
 def _quantile(x: torch.Tensor, q: float) -> torch.Tensor:

@@ -35,9 +35,9 @@ def _load(sim: Simulator, E, nu, density, params) -> None:
 
 class _Rollout(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, sim: Simulator, times: tuple, x0, v0, E, nu, density, params):
+    def forward(ctx, sim: Simulator, times: tuple, x0, v0, E, nu, density, params, C0=None, F0=None):
         _load(sim, E, nu, density, params)
-        sim.set_state(x0, v0)
+        sim.set_state(x0, v0, C0, F0)
         out, tape = sim.rollout(times, outputs=("x", "v", "F"))
         ctx.sim, ctx.tape = sim, tape
         ctx.save_for_backward(E, nu, density, params)
@@ -58,7 +58,7 @@ class _Rollout(torch.autograd.Function):
             return t.to(dtype=like.dtype, device=like.device)
 
         return (None, None, cast(g["x0"], gx), cast(g["v0"], gv), cast(g["E"], E), cast(g["nu"], nu),
-                cast(g["density"], density), cast(g["params"], params))  # fmt: skip
+                cast(g["density"], density), cast(g["params"], params), None, None)  # fmt: skip
 
 
 def simulate(
@@ -70,11 +70,15 @@ def simulate(
     density: torch.Tensor,
     times,
     params: torch.Tensor | None = None,
+    *,
+    C0: torch.Tensor | None = None,
+    F0: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Differentiable rollout: x [T, n, 3], v [T, n, 3], F [T, n, 3, 3] at ``times`` (sorted seconds from 0).
 
     ``x0, v0`` [n, 3]; ``E, nu, density`` [n]; ``params`` [P] the effect parameters (default: the simulator's
-    current values, without gradient). ``n`` must equal ``sim.store.n``; volumes are the store's ``vol``."""
+    current values, without gradient). ``n`` must equal ``sim.store.n``; volumes are the store's ``vol``.
+    ``C0, F0`` [n, 3, 3]: a starting affine velocity and deformation (default 0 and I; constants, no gradient)."""
     n = sim.store.n
     for name, t, shape in (("x0", x0, (n, 3)), ("v0", v0, (n, 3))):
         if tuple(t.shape) != shape:
@@ -82,7 +86,12 @@ def simulate(
     if params is None:
         params = torch.as_tensor(sim.effects.flat(), dtype=_ti.torch_dtype())
     times = tuple(float(t) for t in torch.as_tensor(times, dtype=torch.float64).reshape(-1).tolist())
-    return _Rollout.apply(sim, times, x0, v0, E, nu, density, params)
+    for name, t in (("C0", C0), ("F0", F0)):
+        if t is not None and tuple(t.shape) != (n, 3, 3):
+            raise CausalGSError(f"simulate: {name} has shape {list(t.shape)}, expected [{n}, 3, 3]")
+    C0 = None if C0 is None else C0.detach()
+    F0 = None if F0 is None else F0.detach()
+    return _Rollout.apply(sim, times, x0, v0, E, nu, density, params, C0, F0)
 
 
 def deformed_covariance(F: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
