@@ -58,7 +58,7 @@ class PhysicsConfig:
     min_opacity: float = 0.3  # dynamic Gaussians fainter than this are carried, not simulated as matter
     cfl: float = 0.4
     max_substeps: int = 400  # per frame
-    lr_mat: float = 1e-2  # f_mat
+    lr_mat: float = 5e-3  # f_mat
     lr_vel: float = 1e-3  # f_vel / f_neck / f_weight through the initial velocity
     lr_effects: float = 2e-2
     window_start: int = 8

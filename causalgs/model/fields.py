@@ -43,7 +43,7 @@ class FieldsConfig:
     pos_freqs: int = 4  # frequencies of γ(p)
     time_freqs: int = 4  # frequencies of γ_t(t)
     E_range: tuple[float, float] = (2.0e3, 4.0e5)  # Pa
-    E_init: float = 2.0e4  # Pa, where f_mat starts
+    E_init: float = 1.0e5  # Pa, where f_mat starts (stiff: a soft start sags at rest, and the fit is slow to leave it)
     nu_range: tuple[float, float] = (0.1, 0.45)
     nu_init: float = 0.3
     density_range: tuple[float, float] = (1000.0, 1000.0)  # kg/m³; equal ends = fixed density

@@ -269,12 +269,12 @@ class CausalGS(torch.nn.Module):
 
         - x: the tracked positions, kept inside the simulation domain (off the wall bands; not onto the ground plane,
           which simulated bodies rest a fraction of a cell into);
-        - F = ∂x/∂x0 by forward-mode autodiff through the mixtures and the patterns' motion, kept a rotation times a
-          stretch within [1/STRETCH, STRETCH] per axis: where mixtures change quickly a blend of rigid motions can
-          shear or even invert a neighbourhood, a state no elastic material starts from;
+        - F: the rotation of ∂x/∂x0 (forward-mode autodiff through the mixtures and the patterns' motion). Its
+          stretch is dropped: a blend of rigid motions shears or even inverts a neighbourhood where the mixtures
+          change quickly, which says nothing about the material's strain, and would start the body vibrating;
         - v: the slope at ``frame`` of a least-squares parabola through the tracked positions of the last
-          ``VELOCITY_FRAMES`` frames. The field's own velocity at the end of the fitted window is its least
-          constrained value; a parabola is exact for free fall and gives zero for a body at rest;
+          ``VELOCITY_FRAMES`` frames, zero where not significant (:func:`_resting`). The field's own velocity at the
+          end of the fitted window is its least constrained value; a parabola is exact for free fall;
         - C = 0: the particle velocities carry any rotation."""
         p = self.particles
         f = self.kinematic_fields
@@ -288,12 +288,12 @@ class CausalGS(torch.nn.Module):
             cols = [torch.func.jvp(place, (x0,), (torch.zeros_like(x0).index_fill_(1, torch.tensor([i]), 1.0),))
                     for i in range(3)]  # fmt: skip
         x = cols[0][0].detach()
-        F = _admissible(torch.stack([c[1].detach() for c in cols], dim=-1))
+        F = _rotation(torch.stack([c[1].detach() for c in cols], dim=-1))
         with torch.no_grad():
             if k >= 2:  # the slope at k of a least-squares parabola through the last VELOCITY_FRAMES tracked positions
                 ks = list(range(max(0, k - VELOCITY_FRAMES + 1), k + 1))
                 xs, _ = self.trajectories(self.mixtures(x0), x0, None, k, ks)
-                v = torch.einsum("t,tnd->nd", _slope_weights(len(ks), self.fps).to(xs.dtype), xs)
+                v = _resting(xs, self.fps)
             else:
                 a, w = f.affine(self.mixtures(x0), torch.tensor([k / self.fps], dtype=x0.dtype))
                 v = a[0] + torch.linalg.cross(w[0], x)
@@ -333,8 +333,24 @@ class CausalGS(torch.nn.Module):
         return self.gaussians.render(camera, tuple(float(b) for b in background), **state.overrides())
 
 
-STRETCH = 1.25
 VELOCITY_FRAMES = 6
+
+
+def _resting(xs: torch.Tensor, fps: float) -> torch.Tensor:
+    """Velocities [n, 3] at the last of the positions xs [m, n, 3] (frames 1/fps apart): the slope of a least-squares
+    parabola, set to zero where it is not significant, i.e. below twice its standard error from the fit's residual
+    scatter (for m > 3; a tracked body at rest jitters by a fraction of a millimetre, which the slope magnifies)."""
+    m = len(xs)
+    w = _slope_weights(m, fps).to(xs.dtype)
+    v = torch.einsum("t,tnd->nd", w, xs)
+    if m <= 3:
+        return v
+    t = torch.arange(m, dtype=xs.dtype) - (m - 1)
+    A = torch.stack([torch.ones_like(t), t, t * t], dim=1)
+    fit = A @ torch.linalg.pinv(A)  # [m, m] the projection onto parabolas
+    resid = xs - torch.einsum("st,tnd->snd", fit, xs)
+    sigma = torch.sqrt((resid**2).sum(0) / (m - 3))  # [n, 3] per-axis scatter
+    return torch.where(v.abs() > 2.0 * sigma * w.norm(), v, torch.zeros_like(v))
 
 
 def _slope_weights(m: int, fps: float) -> torch.Tensor:
@@ -346,14 +362,12 @@ def _slope_weights(m: int, fps: float) -> torch.Tensor:
     return coef[1] * fps
 
 
-def _admissible(F: torch.Tensor) -> torch.Tensor:
-    """F [n, 3, 3] with its rotation kept (reflections turned into rotations) and its principal stretches clamped to
-    [1/STRETCH, STRETCH]."""
-    U, S, Vh = torch.linalg.svd(F.double())
+def _rotation(F: torch.Tensor) -> torch.Tensor:
+    """The rotation of the polar decomposition of F [n, 3, 3] (a reflection turned into the nearest rotation)."""
+    U, _, Vh = torch.linalg.svd(F.double())
     flip = torch.linalg.det(U @ Vh) < 0
     U = torch.where(flip[:, None, None], U * torch.tensor([1.0, 1.0, -1.0], dtype=U.dtype), U)
-    S = S.clamp(1.0 / STRETCH, STRETCH)
-    return (U @ torch.diag_embed(S) @ Vh).to(F.dtype)
+    return (U @ Vh).to(F.dtype)
 
 
 def _quantile(x: torch.Tensor, q: float) -> torch.Tensor:

@@ -242,7 +242,7 @@ def test_the_kinematic_fit_is_kept_through_the_physical_stage(fitted):
 def test_observed_state_deformation_is_the_jacobian_of_the_kinematic_map(fitted):
     """F of the forecast's starting state (forward-mode autodiff) against central differences of the same map."""
     from causalgs.model.fit import load_model
-    from causalgs.model.scene import _admissible
+    from causalgs.model.scene import _rotation
 
     m, _, tl = load_model(fitted)
     k = tl.train_frames - 1
@@ -257,7 +257,7 @@ def test_observed_state_deformation_is_the_jacobian_of_the_kinematic_map(fitted)
     eps = 1e-5
     fd = torch.stack([(place(x0 + eps * e) - place(x0 - eps * e)) / (2 * eps) for e in torch.eye(3, dtype=x0.dtype)],
                      dim=-1)  # fmt: skip
-    fd = _admissible(fd)
+    fd = _rotation(fd)
     assert torch.allclose(s["F"].double(), fd, atol=2e-3, rtol=1e-3), float((s["F"].double() - fd).abs().max())
     assert s["x"].shape == x0.shape and s["C"].shape == (len(x0), 3, 3)
 
@@ -274,20 +274,31 @@ def test_slope_weights_differentiate_parabolas_exactly(m):
     assert abs(float(_slope_weights(m, fps) @ torch.full((m,), 0.4, dtype=torch.float64))) < 1e-9  # at rest
 
 
-def test_admissible_deformation_keeps_rotations_and_clamps_stretches():
-    from causalgs.model.scene import STRETCH, _admissible
+def test_rotation_of_a_deformation():
+    from causalgs.model.scene import _rotation
 
     g = torch.Generator().manual_seed(0)
     Q, _ = torch.linalg.qr(torch.randn(5, 3, 3, dtype=torch.float64, generator=g))
     R = Q * torch.linalg.det(Q)[:, None, None]  # proper rotations
-    assert torch.allclose(_admissible(R), R, atol=1e-12)
-    mild = R @ torch.diag(torch.tensor([1.1, 0.9, 1.0], dtype=torch.float64))
-    assert torch.allclose(_admissible(mild), mild, atol=1e-12)
-    wild = R @ torch.diag(torch.tensor([3.0, 0.1, -1.0], dtype=torch.float64))  # stretched, squashed and inverted
-    F = _admissible(wild)
-    S = torch.linalg.svdvals(F)
-    assert bool((torch.linalg.det(F) > 0).all())
-    assert bool((S <= STRETCH + 1e-9).all() and (S >= 1 / STRETCH - 1e-9).all())
+    assert torch.allclose(_rotation(R), R, atol=1e-12)
+    S = torch.tensor([[1.3, 0.2, 0.0], [0.2, 0.8, 0.1], [0.0, 0.1, 1.1]], dtype=torch.float64)  # symmetric positive
+    assert torch.allclose(_rotation(R @ S), R, atol=1e-12)
+    inverted = _rotation(R @ torch.diag(torch.tensor([3.0, 0.1, -1.0], dtype=torch.float64)))
+    assert bool((torch.linalg.det(inverted) > 0).all())
+    assert torch.allclose(inverted @ inverted.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(5, 3, 3))
+
+
+def test_resting_bodies_get_no_velocity_from_jitter():
+    from causalgs.model.scene import _resting
+
+    fps = 24.0
+    g = torch.Generator().manual_seed(1)
+    t = (torch.arange(6, dtype=torch.float64) - 5) / fps
+    moving = (0.5 * t)[:, None, None].expand(6, 1, 3) + 1e-4 * torch.randn(6, 1, 3, dtype=torch.float64, generator=g)
+    still = 1e-3 * torch.randn(6, 1, 3, dtype=torch.float64, generator=g)  # jitter, no motion
+    v = _resting(torch.cat([moving, still], dim=1), fps)
+    assert torch.allclose(v[0], torch.full((3,), 0.5, dtype=torch.float64), atol=0.05)
+    assert torch.equal(v[1], torch.zeros(3, dtype=torch.float64))
 
 
 def test_forecast_starts_from_the_last_observed_state(fitted):
