@@ -2,12 +2,16 @@
 
 1. **canonical**: 3DGS on the t = 0 training images (densification, pruning; :mod:`causalgs.model.canonical`);
 2. **kinematic**: the inverse-physics fields learn the velocity field through renders of the RK2-integrated
-   Gaussians, on a time window that widens from ``window_start`` frames to every observed frame; at the end Gaussians
-   that never move are frozen as static background and the model as it stands is kept as ``kinematic.pt``, the
-   kinematic-only model (trained without the physical path) that evaluation compares against;
+   Gaussians, on a time window that widens from ``window_start`` frames to every observed frame (slowly at first;
+   every other image from the window's newest frames; the loss includes blurred copies of both images, so a small
+   fast body that no longer overlaps its image is still pulled towards it). At the end the fit is kept as the model's
+   *tracked* copy of the fields, Gaussians that never move are frozen as static background, and the model as it
+   stands is kept as ``kinematic.pt``, the kinematic-only model that evaluation compares against;
 3. **physics**: the dynamic Gaussians become MPM particles; renders of the simulated state and the distance between
-   simulated and kinematic positions at frame times train f_mat (materials), the fields through the initial velocity,
-   and the learned effect parameters, through the checkpointed Taichi backward.
+   simulated and tracked positions at frame times train f_mat (materials), the fields through the initial velocity,
+   and the learned effect parameters, through the checkpointed Taichi backward. Even iterations roll out from t = 0
+   over a widening window (the causes); odd ones are shooting segments of ``shooting`` frames from the tracked state
+   at a random observed frame (materials and effects from short rollouts that start where the bodies were seen).
 
 Run folder: ``config.toml`` (resolved), ``run.json`` (data path, stage times), ``log.jsonl`` (one line per
 iteration), ``losses.png``, ``checkpoint.pt`` (rewritten atomically at least every ``checkpoint_seconds`` and
@@ -243,6 +247,7 @@ class Trainer:
         f = m.fields
         nets = [*f.f_vel.parameters(), *f.f_neck.parameters(), *f.f_weight.parameters()]
         opt = torch.optim.Adam([{"params": nets, "lr": kc.lr}, {"params": [f.centres], "lr": kc.lr_centres}])
+        reach = kc.rest_reach * float((m.hi - m.lo).max())  # a rotation rate times this is a speed
         if opt_state is not None:
             opt.load_state_dict(opt_state)
         for it in range(start, kc.iterations):
@@ -254,6 +259,9 @@ class Trainer:
             for i, (_, frame) in enumerate(picks):
                 img, _, _ = m.gaussians.render(frame.camera, self.bg, means=means[i], quats=quats[i])
                 loss = loss + tracking_loss(img, self._gt(frame), kc.lambda_dssim, kc.blur) / len(picks)
+            if kc.lambda_rest > 0:  # bodies at rest unless the images say otherwise: L1 on the patterns' twists
+                W = f.twists(torch.arange(window, dtype=torch.float64).to(f.centres.dtype) / self.timeline.fps)
+                loss = loss + kc.lambda_rest * (W[..., :3].norm(dim=-1) + reach * W[..., 3:].norm(dim=-1)).mean()
             _finite(loss, "kinematic", it)
             opt.zero_grad(set_to_none=True)
             loss.backward()

@@ -259,10 +259,32 @@ class CausalGS(torch.nn.Module):
         else:
             s = self.observed_state(start)
             x0, v0, C0, F0 = s["x"], s["v"], s["C"].to(dt), s["F"].to(dt)
+            if self.config.physics.preload > 0:
+                F0 = self._preload(s, c).to(dt)
         times = [(float(f) - start) / self.fps for f in frames]
         x, v, F = simulate(sim, x0.to(dt), v0.to(dt), c["E"].to(dt), c["nu"].to(dt), c["density"].to(dt), times,
                            self.effect_params.to(dt), C0=C0, F0=F0)  # fmt: skip
         return {"x": x, "v": v, "F": F, **c}
+
+    def _preload(self, s: dict, c: dict) -> torch.Tensor:
+        """F for a restart from the observed state ``s`` with the bodies seen at rest already carrying their weight.
+
+        A body at rest on the ground is compressed by gravity; restarted stress-free it would first sag (a soft one
+        by centimetres). So: simulate the observed state with zero velocity for ``physics.preload`` frames (no
+        gradient), and give the particles that are (nearly) at rest, those whose observed velocity would carry them
+        less than half a cell over that time, the deformation they settled into; faster ones keep the observed
+        rotation."""
+        sim = self.simulator()
+        dt = _ti.torch_dtype()
+        with torch.no_grad():
+            _, _, F = simulate(sim, s["x"].to(dt), torch.zeros_like(s["v"]).to(dt), c["E"].detach().to(dt),
+                               c["nu"].detach().to(dt), c["density"].detach().to(dt),
+                               [self.config.physics.preload / self.fps], self.effect_params.detach().to(dt),
+                               F0=s["F"].to(dt))  # fmt: skip
+        seconds = self.config.physics.preload / self.fps
+        dx = float((self.box[1] - self.box[0]).max()) / self.config.physics.res
+        rest = s["v"].norm(dim=1) * seconds < 0.5 * dx  # would move less than half a cell while settling
+        return torch.where(rest[:, None, None], F[-1].to(s["F"].dtype), s["F"])
 
     def observed_state(self, frame: int) -> dict[str, torch.Tensor]:
         """The particles' state at ``frame`` by the kinematic fit (the tracked copy).
