@@ -38,7 +38,7 @@ class KinematicConfig:
     # Weight of the mean twist size |u_k| + reach·|ω_k| over patterns and window frames (m/s): a body is at rest
     # unless the images say otherwise, so a body that has landed stops rather than drifting at the window's end.
     lambda_rest: float = 0.01
-    rest_reach: float = 0.2  # the reach, as a fraction of the scene size (rotations cost what their speed there costs)
+    rest_reach: float = 0.2  # the reach, as a fraction of the scene size (a rotation costs its speed there)
     substeps: int = 1  # RK2 steps per frame interval
     lambda_dssim: float = 0.2
     static_threshold: float = 0.01  # a Gaussian that moves less than this fraction of the scene size is static
@@ -67,7 +67,7 @@ class PhysicsConfig:
     lr_effects: float = 2e-2
     window_start: int = 8
     window_ramp: float = 0.5
-    preload: int = 12  # frames of settling under the effects that give bodies at rest their stress at a restart (0: off)
+    preload: int = 12  # frames of settling that give bodies at rest their weight-bearing stress at a restart
     shooting: int = 12  # every other iteration: a segment of this many frames from the kinematic fit's state at a
     # random observed frame (multiple shooting: materials and effects from short, well-conditioned rollouts; 0: off)
     views_per_iter: int = 2
