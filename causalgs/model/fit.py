@@ -312,7 +312,7 @@ class Trainer:
         ])  # fmt: skip
         if opt_state is not None:
             opt.load_state_dict(opt_state)
-        dx = float((m.box[1] - m.box[0]).max()) / pc.res
+        dx = m.cell
         n = self.timeline.train_frames
         for it in range(start, pc.iterations):
             window = self._window(it, pc.iterations, pc.window_start, pc.window_ramp)
@@ -369,12 +369,6 @@ def _clamped(m: CausalGS, values: np.ndarray) -> np.ndarray:
         if lower is not None:
             out[i] = max(out[i], lower)
     return out
-
-
-def _particle_kinematics(m: CausalGS, h, x0, steps: int):
-    from causalgs.model.kinematic import integrate
-
-    return integrate(m.fields, h, x0, None, steps, 1.0 / m.fps, m.config.kinematic.substeps)
 
 
 def fit(data_dir, out, config: FitConfig | None = None, *, resume: bool = False, progress=None) -> CausalGS:

@@ -227,6 +227,11 @@ class CausalGS(torch.nn.Module):
                                          solid=solid.numpy())  # fmt: skip
         self._sim = None
 
+    @property
+    def cell(self) -> float:
+        """The simulation grid's cell size (m)."""
+        return float((self.box[1] - self.box[0]).max()) / self.config.physics.res
+
     def learn_mask(self) -> torch.Tensor:
         """Which entries of the effect parameters are trained (``physics.learn``)."""
         names = Effects.from_spec(self.config.physics.effects).param_names()
@@ -282,7 +287,7 @@ class CausalGS(torch.nn.Module):
                                [self.config.physics.preload / self.fps], self.effect_params.detach().to(dt),
                                F0=s["F"].to(dt))  # fmt: skip
         seconds = self.config.physics.preload / self.fps
-        dx = float((self.box[1] - self.box[0]).max()) / self.config.physics.res
+        dx = self.cell
         rest = s["v"].norm(dim=1) * seconds < 0.5 * dx  # would move less than half a cell while settling
         return torch.where(rest[:, None, None], F[-1].to(s["F"].dtype), s["F"])
 
@@ -319,7 +324,7 @@ class CausalGS(torch.nn.Module):
             else:
                 a, w = f.affine(self.mixtures(x0), torch.tensor([k / self.fps], dtype=x0.dtype))
                 v = a[0] + torch.linalg.cross(w[0], x)
-        dx = float((self.box[1] - self.box[0]).max()) / self.config.physics.res
+        dx = self.cell
         band = WALL_BAND * dx
         x = torch.minimum(torch.maximum(x, self.box[0].to(x.dtype) + band), self.box[1].to(x.dtype) - band)
         return {"x": x, "F": F, "v": v, "C": torch.zeros_like(F)}

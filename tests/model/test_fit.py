@@ -313,7 +313,7 @@ def test_forecast_starts_from_the_last_observed_state(fitted):
     with torch.no_grad():
         out = m.forecast([k + 1])
     dt = 1.0 / tl.fps
-    dx = float((m.box[1] - m.box[0]).max()) / m.config.physics.res
+    dx = m.cell
     step = (out["x"][0].double() - s["x"].double()).norm(dim=1)
     bound = s["v"].double().norm(dim=1) * dt + 9.81 * dt**2 + dx
     assert bool((step <= bound).all()), float((step - bound).max())
