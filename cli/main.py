@@ -76,8 +76,15 @@ def cli():
     "of the simulator's effects, e.g. 'gravity;ground:mu=0.4;linear_drag:c=0.3;walls' (effects: gravity, force, "
     "linear_drag, quadratic_drag, ground, ground_sticky, walls, damping, plasticity).",
 )
+@click.option(
+    "--fps",
+    type=click.FloatRange(1.0, 10000.0),
+    default=None,
+    help="Capture rate in frames per second [default: 120 for the simulated scenes, whose future frames then still "
+    "hold motion; 24 for spin].",
+)
 @click.option("--force", is_flag=True, help="Overwrite an existing dataset in --out.")
-def synth(name, out, views, frames, resolution, background, seed, effects, force):
+def synth(name, out, views, frames, resolution, background, seed, effects, fps, force):
     """Write the built-in scene NAME as a dataset in --out.
 
     The layout is the D-NeRF / NVFi one (transforms_{train,val,test}.json, RGBA PNGs, points3d.ply) plus gt/ with
@@ -105,7 +112,7 @@ def synth(name, out, views, frames, resolution, background, seed, effects, force
     for n in list(SCENES) if name == "all" else [name]:
         target = Path(out) / n if name == "all" else out
         opts = {"views": views, "frames": frames, "resolution": resolution, "background": bg, "seed": seed}
-        click.echo(generate(n, target, **opts, overwrite=force, effects=effects))
+        click.echo(generate(n, target, **opts, overwrite=force, effects=effects, fps=fps))
 
 
 @cli.command()

@@ -1,6 +1,6 @@
 """Built-in synthetic scenes with ground truth, written as D-NeRF / NVFi / FreeGave datasets.
 
-Each scene is a builder ``build(views=, frames=, resolution=, seed=) -> SynthScene`` registered in :data:`SCENES`;
+Each scene is a builder ``build(views=, frames=, resolution=, seed=, fps=) -> SynthScene`` registered in :data:`SCENES`;
 :func:`generate` validates the options, builds the scene and hands it to the one shared writer
 (:mod:`causalgs.synth.writer`), so every scene has the same layout, split protocol and gt/ folder. Images come from
 analytic ray casting (:mod:`causalgs.synth.raycast`) for rigid scenes, and from surface meshes carried by the
@@ -32,9 +32,17 @@ SCENES: dict[str, Callable[..., SynthScene]] = {
 SIMULATED = {"jelly", "fallingball", "collide", "room"}
 
 
-def _check_options(name, views, frames, resolution, background) -> tuple[float, float, float]:
+# Frame rates of the scenes when --fps is not given: the spinning fan keeps turning at 24 fps; the simulated scenes
+# are captured at 120 fps so that their future frames still hold motion (see causalgs.synth.physics.FPS).
+DEFAULT_FPS = {name: (spin.FPS if name == "spin" else physics.FPS) for name in SCENES}
+
+
+def _check_options(name, views, frames, resolution, background, fps) -> tuple[float, float, float]:
     if name not in SCENES:
         raise CausalGSError(f"unknown scene '{name}'; choose one of: {', '.join(sorted(SCENES))}")
+    if fps is not None and (isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps)
+                            or not 1.0 <= fps <= 10000.0):  # fmt: skip
+        raise CausalGSError(f"--fps = {fps!r} must be a number in [1, 10000]")
     for what, value, low in (("views", views, 2), ("frames", frames, 2), ("resolution", resolution, 8)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise CausalGSError(f"--{what} = {value!r} must be an integer >= {low}")
@@ -59,16 +67,18 @@ def generate(
     overwrite: bool = False,
     progress: bool = True,
     effects: str | None = None,
+    fps: float | None = None,
 ) -> str:
     """Write the built-in scene ``name`` into ``out`` and return a short human summary.
 
     ``effects`` (simulated scenes only) replaces the scene's default effects spec, e.g.
     ``"gravity;ground:mu=0.4;linear_drag:c=0.3;walls"``. The result depends only on the arguments (same seed, same
-    bytes). Raises :class:`CausalGSError` with one line for bad options or when ``out`` already holds files and
+    bytes). ``fps`` is the capture rate (None: the scene's default, :data:`DEFAULT_FPS`). Raises :class:`CausalGSError` with one line for bad options or when ``out`` already holds files and
     ``overwrite`` is false.
     """
     start = time.perf_counter()
-    bg = _check_options(name, views, frames, resolution, background)
+    bg = _check_options(name, views, frames, resolution, background, fps)
+    fps = float(DEFAULT_FPS[name] if fps is None else fps)
     out = Path(out)
     check_out(out, overwrite)  # before minutes of simulation
     if name in SIMULATED:
@@ -77,12 +87,12 @@ def generate(
 
             parse_spec(effects)  # one-line error for a bad spec before anything runs
         scene = SCENES[name](views=views, frames=frames, resolution=resolution, seed=seed, effects=effects,
-                             progress=progress)  # fmt: skip
+                             progress=progress, fps=fps)  # fmt: skip
     elif effects is not None:
         raise CausalGSError(f"scene '{name}' has analytic motion and takes no --effects (simulated: "
                             f"{', '.join(sorted(SIMULATED))})")  # fmt: skip
     else:
-        scene = SCENES[name](views=views, frames=frames, resolution=resolution, seed=seed)
+        scene = SCENES[name](views=views, frames=frames, resolution=resolution, seed=seed, fps=fps)
     options = {
         "seed": seed,
         "options": {
@@ -92,12 +102,13 @@ def generate(
             "background": list(bg),
             "seed": seed,
             "effects": effects,
+            "fps": fps,
         },
     }
     counts = write_dataset(out, scene, background=bg, overwrite=overwrite, progress=progress, options=options)
     elapsed = time.perf_counter() - start
     return (
-        f"Wrote '{name}' to {out}: {views} views x {frames} frames at {resolution}x{resolution} -> "
+        f"Wrote '{name}' to {out}: {views} views x {frames} frames at {resolution}x{resolution}, {fps:g} fps -> "
         f"train {counts['train']}, val {counts['val']}, test {counts['test']} images, gt masks and motion "
         f"({elapsed:.1f} s)"
     )

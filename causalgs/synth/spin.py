@@ -253,6 +253,6 @@ class SpinScene:
         )
 
 
-def build(*, views: int, frames: int, resolution: int, seed: int) -> SynthScene:
+def build(*, views: int, frames: int, resolution: int, seed: int, fps: float = FPS) -> SynthScene:
     """The spin scene as a :class:`~causalgs.synth.writer.SynthScene`."""
-    return SpinScene(views=views, frames=frames, resolution=resolution, seed=seed).scene()
+    return SpinScene(views=views, frames=frames, resolution=resolution, seed=seed, fps=fps).scene()

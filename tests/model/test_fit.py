@@ -33,7 +33,8 @@ def scene(tmp_path_factory):
 
     _ti.init("cpu", "float32")
     out = tmp_path_factory.mktemp("fallingball") / "data"
-    s = physics.fallingball(views=VIEWS, frames=FRAMES, resolution=RES, seed=3, progress=False, reference_res=32)
+    s = physics.fallingball(views=VIEWS, frames=FRAMES, resolution=RES, seed=3, progress=False, reference_res=32,
+                             fps=24.0)
     write_dataset(out, s, background=(1, 1, 1), progress=False)
     return out
 

@@ -21,12 +21,13 @@ from causalgs.synth import generate, physics
 from causalgs.synth.writer import write_dataset
 
 VIEWS, FRAMES, RES, SIM_RES = 4, 8, 40, 32
+FPS = 24.0  # 8 frames at 24 fps: the jelly falls, lands and bounces
 BG = (1.0, 1.0, 1.0)
 
 
 def _make(out: Path, seed: int = 0, effects: str | None = None, frames: int = FRAMES) -> None:
     scene = physics.jelly(views=VIEWS, frames=frames, resolution=RES, seed=seed, effects=effects, progress=False,
-                          reference_res=SIM_RES)  # fmt: skip
+                          reference_res=SIM_RES, fps=FPS)  # fmt: skip
     write_dataset(out, scene, background=BG, progress=False, options={"seed": seed})
 
 
@@ -74,7 +75,7 @@ def test_volume_is_nearly_preserved(jelly):
 
 def _dt_max(meta) -> float:
     """The largest substep of the run (symplectic Euler adds g·t·dt/2 to a free fall)."""
-    return 1.0 / (24.0 * min(meta["motion"]["substeps_per_frame"]))
+    return 1.0 / (meta["fps"] * min(meta["motion"]["substeps_per_frame"]))
 
 
 def test_falls_under_gravity_until_contact(jelly):

@@ -22,7 +22,7 @@ def _make(tmp_path_factory, name: str, frames: int):
     _ti.init("cpu", "float32")
     out = tmp_path_factory.mktemp(name) / "data"
     scene = getattr(physics, name)(views=VIEWS, frames=frames, resolution=RES, seed=3, progress=False,
-                                   reference_res=SIM_RES)  # fmt: skip
+                                   reference_res=SIM_RES, fps=24.0)  # fmt: skip
     write_dataset(out, scene, background=(1, 1, 1), progress=False)
     with np.load(out / "gt" / "motion.npz") as z:
         motion = dict(z)
@@ -66,7 +66,7 @@ def test_ball_follows_its_throw_until_contact(ball):
     com = motion["particles"].astype(np.float64).mean(1)
     t = motion["seconds"]
     vz = obj["velocity"][2]
-    dt = 1.0 / (24.0 * min(meta["motion"]["substeps_per_frame"]))
+    dt = 1.0 / (meta["fps"] * min(meta["motion"]["substeps_per_frame"]))
     for k in range(1, len(t)):
         if motion["particles"][k, :, 2].min() < 0.05:
             break

@@ -156,7 +156,8 @@ def test_deterministic_for_a_seed(spin, tmp_path):
 
 
 def test_bad_options_are_one_line_errors(tmp_path):
-    for kw in ({"views": 1}, {"frames": 1}, {"resolution": 4}, {"background": (0, 0, 2)}):
+    for kw in ({"views": 1}, {"frames": 1}, {"resolution": 4}, {"background": (0, 0, 2)}, {"fps": 0.0},
+               {"fps": float("nan")}):  # fmt: skip
         with pytest.raises(CausalGSError) as e:
             _make(tmp_path / "x", **kw)
         assert "\n" not in str(e.value)
@@ -208,3 +209,16 @@ def test_gt_projects_into_the_masks_at_default_resolution(tmp_path):
         ij = np.floor(uv).astype(int)
         inside.append((mask[ij[:, 1], ij[:, 0]] == 1).mean())
     assert min(inside) >= 0.95, f"worst image: {min(inside):.3f} of gt points inside the mask"
+
+
+def test_fps_option_sets_the_time_step(tmp_path):
+    """--fps changes the capture rate: the same motion law sampled at other times, recorded in the JSON."""
+    from causalgs.synth import DEFAULT_FPS, physics
+
+    assert DEFAULT_FPS["spin"] == 24.0 and DEFAULT_FPS["jelly"] == physics.FPS == 120.0
+    _make(tmp_path / "a", views=3, frames=3, resolution=16, fps=12.0)
+    ds = load_dataset(tmp_path / "a")
+    assert ds.fps == 12.0
+    with np.load(tmp_path / "a" / "gt" / "motion.npz") as z:
+        secs = z["times"] * 2 / float(z["fps"])
+        assert float(z["fps"]) == 12.0 and np.allclose(secs, [0.0, 1 / 12, 2 / 12])
