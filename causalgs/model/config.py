@@ -63,6 +63,7 @@ class PhysicsConfig:
     cfl: float = 0.4
     max_substeps: int = 400  # per frame
     lr_mat: float = 5e-3  # f_mat
+    lr_pattern_mat: float = 2e-2  # Θ, the per-pattern material offsets
     lr_vel: float = 1e-3  # f_vel / f_neck / f_weight through the initial velocity
     lr_effects: float = 2e-2
     window_start: int = 8

@@ -32,7 +32,7 @@ def physics_arrays(model: CausalGS) -> dict[str, np.ndarray]:
             "code": z.numpy(),
             "mixture": h.numpy(),
             "velocity": f.velocity(x, 0.0, h).numpy(),
-            **{k: v.numpy() for k, v in f.materials(x).items()},
+            **{k: v.numpy() for k, v in model.materials(x).items()},
         }
         if model.particles is not None:
             c = model.causes()

@@ -9,7 +9,11 @@ All of it is plain torch (no Taichi field is touched here; DESIGN.md "One path f
 - W_t = f_weight(γ_t(t)) ∈ R^{K×6}: what each pattern does at time t, as a 6-DoF twist (3 linear + 3 angular);
 - v(p, t) = Σ_k h_k [u_k(t) + ω_k(t) × (p − c_k)]: the divergence-free 6-DoF basis B(p), with every pattern rotating
   about its own learned centre c_k (not only the world origin);
-- m = f_mat(γ(p)): Young's modulus (log-space, bounded), Poisson ratio and density (bounded).
+- m = f_mat(γ(p)) + h·Θ: Young's modulus (log-space, bounded), Poisson ratio and density (bounded). Θ ∈ R^{K×3}
+  holds one material offset per motion pattern (zero at the start). A body is what moves together, and its particles
+  share a material: through Θ the evidence about one body (a soft block squashed by an impact) moves that body's
+  material and not its neighbour's. Through f_mat alone, whose weights every particle shares, the strongest signal
+  in the scene drags every body's material along with it.
 
 The code z and the mixture h are computed once per particle at its canonical position (the particle carries its
 physics code, as a Lagrangian label), so integrating the motion costs O(N·K) per step and needs no network call:
@@ -128,8 +132,14 @@ class InversePhysics(nn.Module):
             last.bias.copy_(torch.tensor([
                 _logit((math.log(c.E_init) - logE[0]) / span), _logit((c.nu_init - c.nu_range[0]) / nu_span), 0.0
             ]))  # fmt: skip
+        self.pattern_materials = nn.Parameter(torch.zeros(c.patterns, 3))  # Θ: per-pattern material offsets
         g = torch.Generator().manual_seed(0)
         self.centres = nn.Parameter(centre + (torch.rand(c.patterns, 3, generator=g) - 0.5) * half)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        if prefix + "f_mat.0.weight" in state_dict and prefix + "pattern_materials" not in state_dict:
+            state_dict[prefix + "pattern_materials"] = torch.zeros_like(self.pattern_materials)  # an older model
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     # -- per particle ----------------------------------------------------------------------------------------------
     def code(self, p: torch.Tensor) -> torch.Tensor:
@@ -140,10 +150,14 @@ class InversePhysics(nn.Module):
         """h = softmax(f_neck(z)) [N, K]."""
         return torch.softmax(self.f_neck(z), dim=-1)
 
-    def materials(self, p: torch.Tensor) -> dict[str, torch.Tensor]:
-        """E, nu, density [N] from f_mat(γ(p)), each inside its configured range."""
+    def materials(self, p: torch.Tensor, h: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """E, nu, density [N] from f_mat(γ(p)) + h·Θ (``h``: the particles' motion mixtures [N, K]; None leaves out
+        the per-pattern offsets), each inside its configured range."""
         c = self.config
-        s = torch.sigmoid(self.f_mat(self.enc(p)))
+        a = self.f_mat(self.enc(p))
+        if h is not None:
+            a = a + h.to(a.dtype) @ self.pattern_materials.to(a.dtype)
+        s = torch.sigmoid(a)
         logE0, logE1 = math.log(c.E_range[0]), math.log(c.E_range[1])
         return {
             "E": torch.exp(logE0 + s[:, 0] * (logE1 - logE0)),

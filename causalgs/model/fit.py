@@ -307,6 +307,7 @@ class Trainer:
         nets = [*f.f_vel.parameters(), *f.f_neck.parameters(), *f.f_weight.parameters()]
         opt = torch.optim.Adam([
             {"params": list(f.f_mat.parameters()), "lr": pc.lr_mat},
+            {"params": [f.pattern_materials], "lr": pc.lr_pattern_mat},
             {"params": nets, "lr": pc.lr_vel},
             {"params": [m.effect_params], "lr": pc.lr_effects},
         ])  # fmt: skip

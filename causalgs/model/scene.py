@@ -247,7 +247,14 @@ class CausalGS(torch.nn.Module):
         x0 = p.x0.to(f.centres.dtype)
         h = f.mixture(f.code(x0))
         v0 = f.velocity(x0, 0.0, h)
-        return {"x0": x0, "v0": v0, "h": h, **self.fields.materials(x0)}
+        return {"x0": x0, "v0": v0, "h": h, **self.materials(x0)}
+
+    def materials(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        """E, nu, density at canonical positions ``x``: f_mat plus the per-pattern offsets, weighted by the tracked
+        fit's mixtures (the motion segmentation is a constant here: materials are learned for the bodies it found)."""
+        with torch.no_grad():
+            h = self.mixtures(x)
+        return self.fields.materials(x, h)
 
     def simulate(self, frames, start: int = 0) -> dict[str, torch.Tensor]:
         """Particle x, v, F [T, P, ...] at the given frame indices (sorted, > ``start``, or ≥ 0 from the start)

@@ -80,17 +80,22 @@ def test_fit_writes_a_complete_run(fitted):
 
 
 def test_the_simulator_changes_the_materials(fitted):
-    """The physical stage is the only one that trains f_mat: its losses must have moved the materials."""
+    """The physical stage is the only one that trains f_mat and the per-pattern offsets Θ: its losses must have moved
+    the materials, through both."""
     from causalgs.model.fit import load_model
 
     before, _, _ = load_model(fitted, "kinematic.pt")
     after, _, _ = load_model(fitted)
     x = after.particles.x0.float()
     with torch.no_grad():
-        e0 = before.fields.materials(x)["E"]
-        e1 = after.fields.materials(x)["E"]
+        e0 = before.materials(x)["E"]
+        e1 = after.materials(x)["E"]
+        field = after.fields.materials(x)["E"]  # f_mat alone
     change = (e1.log() - e0.log()).abs()
     assert float(change.max()) > 1e-2, float(change.max())
+    assert float(before.fields.pattern_materials.abs().max()) == 0.0
+    assert float(after.fields.pattern_materials.abs().max()) > 1e-3
+    assert float((field.log() - e0.log()).abs().max()) > 1e-3 and float((e1.log() - field.log()).abs().max()) > 1e-3
     # The learned friction coefficient moved away from the effects spec's default too.
     names = after.simulator().effects.param_names()
     assert abs(float(after.effect_params[names.index("ground.mu")]) - 0.5) > 1e-4
@@ -107,6 +112,7 @@ def test_physics_gradients_reach_materials_velocity_and_effects(fitted):
     g_mat = torch.cat([p.grad.flatten() for p in m.fields.f_mat.parameters()])
     g_vel = torch.cat([p.grad.flatten() for p in m.fields.f_weight.parameters()])
     assert float(g_mat.abs().max()) > 0 and float(g_vel.abs().max()) > 0
+    assert float(m.fields.pattern_materials.grad.abs().max()) > 0
     names = m.simulator().effects.param_names()
     assert float(m.effect_params.grad[names.index("gravity.g[2]")]) != 0.0
 
