@@ -73,8 +73,9 @@ def generate(
 
     ``effects`` (simulated scenes only) replaces the scene's default effects spec, e.g.
     ``"gravity;ground:mu=0.4;linear_drag:c=0.3;walls"``. The result depends only on the arguments (same seed, same
-    bytes). ``fps`` is the capture rate (None: the scene's default, :data:`DEFAULT_FPS`). Raises :class:`CausalGSError` with one line for bad options or when ``out`` already holds files and
-    ``overwrite`` is false.
+    bytes). ``fps`` is the capture rate (None: the scene's default, :data:`DEFAULT_FPS`). Raises
+    :class:`CausalGSError` with one line for bad options or when ``out`` already holds files and ``overwrite`` is
+    false.
     """
     start = time.perf_counter()
     bg = _check_options(name, views, frames, resolution, background, fps)
