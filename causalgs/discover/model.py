@@ -1,0 +1,238 @@
+"""The model that discovery calibrates: the observed points as MPM particles, a few parameters per body, and effects.
+
+Parameters (one flat float64 vector θ, so that least squares, sensitivities and bootstraps see one object):
+
+- per body b: Young's modulus (log-space inside ``E_range``), Poisson ratio (inside ``nu_range``), and the initial
+  velocity as a rigid twist, v0(x) = u_b + ω_b × (x − c_b) about the body's rest centroid c_b;
+- the *learned* effect parameters, by name (``"ground.mu"``, ``"linear_drag.c"``, ``"force.b[2]"``): each in
+  internal units, value = lower + scale·softplus(a) for a parameter with a lower bound (drag, friction, viscosity
+  never go negative) and value = offset + scale·a otherwise. Every other effect parameter keeps its spec value.
+
+The rollout is :func:`causalgs.sim.autograd.simulate` on the model's own grid (``res`` cells across the box): one
+forward and one checkpointed backward give the loss and its gradient in every entry of θ. Density is fixed (video
+and trajectories only constrain E/ρ).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from causalgs import _ti
+from causalgs.discover.observation import Observation
+from causalgs.errors import CausalGSError
+from causalgs.sim import SimConfig, Simulator
+from causalgs.sim.autograd import simulate
+from causalgs.sim.effects import REGISTRY, Effects
+
+CAPACITY, SEGMENT = 8192, 16  # the fitted model's store (causalgs.model.config.PhysicsConfig): one set of kernels
+
+
+@dataclass(frozen=True)
+class Knob:
+    """One entry of θ: its name, what it sets, and the map from internal units to its value."""
+
+    name: str
+    kind: str  # "E", "nu", "u", "w" (per body) or "effect"
+    body: int = -1
+    index: int = 0  # axis (u, w) or position in Effects.flat() (effect)
+    scale: float = 1.0
+    lower: float | None = None
+    offset: float = 0.0
+
+    def value(self, a: torch.Tensor) -> torch.Tensor:
+        if self.kind == "effect" and self.lower is not None:
+            return self.lower + self.scale * torch.nn.functional.softplus(a)
+        return self.offset + self.scale * a
+
+    def internal(self, v: float) -> float:
+        if self.kind == "effect" and self.lower is not None:
+            y = max((v - self.lower) / self.scale, 1e-9)
+            return y + math.log(-math.expm1(-y)) if y < 30 else y  # softplus⁻¹
+        return (v - self.offset) / self.scale
+
+
+# Typical magnitudes of effect parameters (internal unit = one scale): a step of one unit is a visible change.
+SCALES = {"g": 1.0, "b": 1.0, "c": 0.3, "k": 0.3, "mu": 0.3, "d": 0.01, "n": 0.1, "eta": 3.0, "yield_stress": 2e3}
+
+
+def _expand(names, effects: Effects) -> list[str]:
+    """``"force.b"`` → ``force.b[0..2]``; every name checked against the effects' parameters."""
+    all_names = effects.param_names()
+    out = []
+    for n in names:
+        hits = [a for a in all_names if a == n or a.startswith(n + "[")]
+        if not hits:
+            raise CausalGSError(f"'{n}' is not a parameter of the effects ({', '.join(all_names) or 'none'})")
+        out += [h for h in hits if h not in out]
+    return out
+
+
+class PhysicsModel:
+    """The observed points of ``obs`` as particles under the effects ``spec``, with the per-body parameters above and
+    the effect parameters named in ``learn`` fitted; see the module docstring."""
+
+    def __init__(self, obs: Observation, spec: str, learn=(), *, res: int = 24, E_range=(2e3, 4e5),
+                 nu_range=(0.1, 0.45), cfl: float = 0.4, max_substeps: int = 4000):  # fmt: skip
+        from causalgs.model.scene import _OWNER, _sim_store
+
+        self.obs, self.spec, self.res = obs, spec, int(res)
+        self.E_range, self.nu_range = tuple(map(float, E_range)), tuple(map(float, nu_range))
+        self.effects = Effects.from_spec(spec)
+        self.learn = _expand(learn, self.effects)
+        store = _sim_store(CAPACITY, SEGMENT)
+        if obs.points > CAPACITY:
+            raise CausalGSError(f"{obs.points} points exceed the simulator's capacity of {CAPACITY}")
+        cfg = SimConfig(res=self.res, lo=obs.lo, hi=obs.hi, segment=SEGMENT, cfl=cfl, max_substeps=max_substeps,
+                        material="neo_hookean", effects=self.effects.spec())  # fmt: skip
+        self.sim = Simulator(store, cfg)
+        self._owner = _OWNER
+        dt = _ti.torch_dtype()
+        self.x0 = torch.as_tensor(obs.x[0], dtype=dt)
+        self.centroids = torch.stack([self.x0[torch.as_tensor(obs.body == b)].mean(0) for b in range(obs.bodies)])
+        self.body = torch.as_tensor(obs.body)
+        knobs = []
+        for b in range(obs.bodies):
+            knobs += [Knob(f"{obs.names[b]}.E", "E", b), Knob(f"{obs.names[b]}.nu", "nu", b)]
+            knobs += [Knob(f"{obs.names[b]}.v0[{i}]", "u", b, i) for i in range(3)]
+            knobs += [Knob(f"{obs.names[b]}.omega0[{i}]", "w", b, i) for i in range(3)]
+        flat = self.effects.flat()
+        names = self.effects.param_names()
+        for n in self.learn:
+            i = names.index(n)
+            effect, param = n.split("[")[0].split(".")
+            prm = REGISTRY[effect].param(param)
+            scale = SCALES.get(param, 1.0)
+            if prm.lower is not None:
+                knobs.append(Knob(n, "effect", index=i, scale=scale, lower=prm.lower))
+            else:
+                knobs.append(Knob(n, "effect", index=i, scale=scale, offset=float(flat[i])))
+        self.knobs = knobs
+        self.names = [k.name for k in knobs]
+
+    # -- θ ----------------------------------------------------------------------------------------------------------
+    def index(self, name: str) -> int:
+        return self.names.index(name)
+
+    def base_indices(self) -> list[int]:
+        """Entries of θ that are per-body (materials and initial velocities)."""
+        return [i for i, k in enumerate(self.knobs) if k.kind != "effect"]
+
+    def initial(self, E: float = 5e4, nu: float = 0.3, effects: dict | None = None) -> torch.Tensor:
+        """θ at the stiffness ``E``, ratio ``nu``, the initial velocity fitted to the first observed frames (a rigid
+        twist per body, least squares on the first differences) and the spec's effect values (or ``effects``)."""
+        lo, hi = (math.log(a) for a in self.E_range)
+        s = min(max((math.log(E) - lo) / (hi - lo), 1e-4), 1 - 1e-4)
+        t = min(max((nu - self.nu_range[0]) / (self.nu_range[1] - self.nu_range[0]), 1e-4), 1 - 1e-4)
+        twist = self.fitted_twists()
+        flat = self.effects.flat()
+        out = []
+        for k in self.knobs:
+            if k.kind == "E":
+                out.append(math.log(s / (1 - s)))
+            elif k.kind == "nu":
+                out.append(math.log(t / (1 - t)))
+            elif k.kind in ("u", "w"):
+                out.append(float(twist[k.body, (0 if k.kind == "u" else 3) + k.index]))
+            else:
+                v = (effects or {}).get(k.name, float(flat[k.index]))
+                out.append(k.internal(v))
+        return torch.tensor(out, dtype=torch.float64)
+
+    def fitted_twists(self, frames: int = 3) -> np.ndarray:
+        """[B, 6] (u, ω) per body: the rigid velocity field that best fits the displacements over the first
+        ``frames`` frames (least squares; u at the body's rest centroid)."""
+        obs = self.obs
+        k = min(frames, obs.observed - 1)
+        dt = obs.times[k] - obs.times[0]
+        v = (obs.x[k] - obs.x[0]) / dt
+        out = np.zeros((obs.bodies, 6))
+        c = self.centroids.double().numpy()
+        for b in range(obs.bodies):
+            sel = obs.body == b
+            r = obs.x[0][sel] - c[b]
+            A = np.zeros((sel.sum(), 3, 6))
+            A[:, :, :3] = np.eye(3)
+            A[:, 0, 4], A[:, 0, 5] = r[:, 2], -r[:, 1]  # ω × r
+            A[:, 1, 3], A[:, 1, 5] = -r[:, 2], r[:, 0]
+            A[:, 2, 3], A[:, 2, 4] = r[:, 1], -r[:, 0]
+            sol, *_ = np.linalg.lstsq(A.reshape(-1, 6), v[sel].reshape(-1), rcond=None)
+            out[b] = sol
+        return out
+
+    def unpack(self, theta: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Per-particle E, nu, v0 [P, 3] and the full effect vector from θ (differentiable)."""
+        B = self.obs.bodies
+        lo, hi = (math.log(a) for a in self.E_range)
+        logE = [None] * B
+        nu = [None] * B
+        uw = [[None] * 6 for _ in range(B)]
+        params = list(torch.as_tensor(self.effects.flat(), dtype=torch.float64).unbind()) or []
+        for i, k in enumerate(self.knobs):
+            a = theta[i]
+            if k.kind == "E":
+                logE[k.body] = lo + (hi - lo) * torch.sigmoid(a)
+            elif k.kind == "nu":
+                nu[k.body] = self.nu_range[0] + (self.nu_range[1] - self.nu_range[0]) * torch.sigmoid(a)
+            elif k.kind == "u":
+                uw[k.body][k.index] = a
+            elif k.kind == "w":
+                uw[k.body][3 + k.index] = a
+            else:
+                params[k.index] = k.value(a)
+        E_b = torch.exp(torch.stack(logE))
+        nu_b = torch.stack(nu)
+        tw = torch.stack([torch.stack(r) for r in uw])  # [B, 6]
+        r = self.x0.double() - self.centroids.double()[self.body]
+        v0 = tw[self.body, :3] + torch.cross(tw[self.body, 3:], r, dim=1)
+        p = torch.stack(params) if params else torch.zeros(0, dtype=torch.float64)
+        return {"E": E_b[self.body], "nu": nu_b[self.body], "v0": v0, "params": p, "E_body": E_b, "nu_body": nu_b,
+                "twist": tw}  # fmt: skip
+
+    def values(self, theta: torch.Tensor) -> dict[str, float]:
+        """Every knob's value in physical units (E in Pa, velocities in m/s and rad/s, effect parameters)."""
+        with torch.no_grad():
+            u = self.unpack(theta)
+        out = {}
+        for i, k in enumerate(self.knobs):
+            if k.kind == "E":
+                out[k.name] = float(u["E_body"][k.body])
+            elif k.kind == "nu":
+                out[k.name] = float(u["nu_body"][k.body])
+            elif k.kind in ("u", "w"):
+                out[k.name] = float(u["twist"][k.body, (0 if k.kind == "u" else 3) + k.index])
+            else:
+                out[k.name] = float(u["params"][k.index])
+        return out
+
+    def spec_at(self, theta: torch.Tensor) -> str:
+        """The effects spec with the fitted values of θ (what a refit run's config would say)."""
+        with torch.no_grad():
+            p = self.unpack(theta)["params"].numpy()
+        eff = Effects.from_spec(self.spec)
+        if len(p):
+            eff.set_flat(p)
+        return eff.spec()
+
+    # -- rollout ----------------------------------------------------------------------------------------------------
+    def rollout(self, theta: torch.Tensor, frames=None) -> torch.Tensor:
+        """Positions [len(frames), P, 3] (float64) at the observation's ``frames`` (default all after the first)."""
+        obs = self.obs
+        frames = list(range(1, len(obs.times))) if frames is None else [int(f) for f in frames]
+        if not frames or min(frames) < 1:
+            raise CausalGSError("rollout frames must be >= 1 (frame 0 is the start)")
+        store = self.sim.store
+        if self._owner.get(id(store)) is not self:
+            store.resize(obs.points)
+            store.from_torch("vol", torch.as_tensor(obs.vol, dtype=_ti.torch_dtype()))
+            self._owner[id(store)] = self
+        dt = _ti.torch_dtype()
+        u = self.unpack(theta)
+        density = torch.full((obs.points,), float(obs.density), dtype=dt)
+        times = [float(obs.times[f] - obs.times[0]) for f in frames]
+        x, _, _ = simulate(self.sim, self.x0, u["v0"].to(dt), u["E"].to(dt), u["nu"].to(dt), density, times,
+                           u["params"].to(dt))  # fmt: skip
+        return x.double()

@@ -1,0 +1,220 @@
+"""What discovery compares the simulator with: measured particle trajectories, split into a fit window and a future.
+
+An :class:`Observation` holds positions ``x [T, P, 3]`` of ``P`` material points at ``T`` frame times, the points'
+rest volumes and body labels, and how many leading frames may be fitted (``observed``); the frames after them are
+held out and only ever scored. It comes from a fitted run (the tracked positions of the model's particles,
+:func:`causalgs.discover.video.observation_from_run`) or from a simulated scene (:func:`synthesize`, which also
+records the truth for tests and the hidden-effect table).
+
+:func:`synthesize` never measures the model's own discretisation: the truth is the reference MPM of
+:mod:`causalgs.synth.physics` (a finer grid, 8 particles per cell), and the observation is a random subset of its
+particles with measurement noise; the model simulates that subset on its own, coarser grid. The nuisances of the
+negative controls enter here too: a noisy reconstructed rest shape (``rest_noise``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from causalgs.errors import CausalGSError
+from causalgs.io import write_npz
+
+
+@dataclass
+class Observation:
+    """Measured trajectories (see the module docstring). ``lo, hi``: the simulation box; ``ground``: the height of
+    the ground plane (z = ground) when the scene has one, for contact-state aggregation; ``noise``: the
+    measurement noise (m, per coordinate) when known, else estimated from the data (:func:`noise_floor`)."""
+
+    times: np.ndarray  # [T] seconds from the first frame
+    x: np.ndarray  # [T, P, 3] measured positions (m)
+    vol: np.ndarray  # [P] rest volume per point (m³)
+    body: np.ndarray  # [P] body index 0..B-1
+    observed: int  # frames 0..observed-1 may be fitted; the rest are held out
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+    density: float = 1000.0
+    ground: float | None = 0.0
+    noise: float | None = None
+    names: list[str] = field(default_factory=list)  # body names
+    truth: dict | None = None  # synthetic scenes: the effects, materials and initial velocities used
+
+    def __post_init__(self):
+        self.times = np.asarray(self.times, dtype=np.float64).reshape(-1)
+        self.x = np.asarray(self.x, dtype=np.float64)
+        self.vol = np.asarray(self.vol, dtype=np.float64).reshape(-1)
+        self.body = np.asarray(self.body).astype(np.int64).reshape(-1)
+        T = len(self.times)
+        if self.x.ndim != 3 or self.x.shape[0] != T or self.x.shape[2] != 3:
+            raise CausalGSError(f"observation: positions have shape {list(self.x.shape)}, expected [{T}, P, 3]")
+        P = self.x.shape[1]
+        if P < 1:
+            raise CausalGSError("observation: no points")
+        for name, a in (("vol", self.vol), ("body", self.body)):
+            if len(a) != P:
+                raise CausalGSError(f"observation: '{name}' has {len(a)} entries for {P} points")
+        if not np.isfinite(self.x).all():
+            bad = np.argwhere(~np.isfinite(self.x))[0]
+            raise CausalGSError(f"observation: position of point {bad[1]} at frame {bad[0]} is not finite")
+        if not (np.isfinite(self.vol).all() and (self.vol > 0).all()):
+            raise CausalGSError("observation: rest volumes must be positive numbers")
+        if (np.diff(self.times) <= 0).any() or not np.isfinite(self.times).all():
+            raise CausalGSError("observation: frame times must be finite and increasing")
+        if not 3 <= int(self.observed) <= T:
+            raise CausalGSError(f"observation: observed = {self.observed} frames must be in [3, {T}]")
+        self.observed = int(self.observed)
+        if self.body.min() < 0:
+            raise CausalGSError("observation: body labels must be >= 0")
+        self.lo = tuple(float(v) for v in self.lo)
+        self.hi = tuple(float(v) for v in self.hi)
+        if not self.names:
+            self.names = [f"body {b}" for b in range(self.bodies)]
+
+    @property
+    def bodies(self) -> int:
+        return int(self.body.max()) + 1
+
+    @property
+    def points(self) -> int:
+        return self.x.shape[1]
+
+    @property
+    def future(self) -> int:
+        """Held-out frames after the fit window."""
+        return len(self.times) - self.observed
+
+    def save(self, path) -> None:
+        """Write the observation as one npz (atomically); :func:`load_observation` reads it back."""
+        extra = {"truth_json": np.array(_json(self.truth))} if self.truth is not None else {}
+        write_npz(Path(path), times=self.times, x=self.x, vol=self.vol, body=self.body,
+                  observed=np.int64(self.observed), lo=np.array(self.lo), hi=np.array(self.hi),
+                  density=np.float64(self.density), ground=np.float64(np.nan if self.ground is None else self.ground),
+                  noise=np.float64(np.nan if self.noise is None else self.noise), names=np.array(self.names),
+                  **extra)  # fmt: skip
+
+
+def _json(obj) -> str:
+    import json
+
+    return json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+
+
+def load_observation(path) -> Observation:
+    """An observation written by :meth:`Observation.save`; a missing or malformed file is a one-line error."""
+    import json
+
+    path = Path(path)
+    if not path.is_file():
+        raise CausalGSError(f"{path}: no such observation file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            d = {k: z[k] for k in z.files}
+    except Exception as e:  # noqa: BLE001 - any unreadable archive is the same error for a user
+        raise CausalGSError(f"{path}: not a readable npz archive ({type(e).__name__})") from None
+    need = ("times", "x", "vol", "body", "observed", "lo", "hi")
+    missing = [k for k in need if k not in d]
+    if missing:
+        raise CausalGSError(f"{path}: missing arrays {', '.join(missing)}")
+
+    def opt(key):
+        v = float(d[key]) if key in d else float("nan")
+        return None if not np.isfinite(v) else v
+
+    try:
+        return Observation(
+            times=d["times"], x=d["x"], vol=d["vol"], body=d["body"], observed=int(d["observed"]),
+            lo=tuple(d["lo"].tolist()), hi=tuple(d["hi"].tolist()),
+            density=float(d.get("density", 1000.0)), ground=opt("ground"), noise=opt("noise"),
+            names=[str(s) for s in d["names"]] if "names" in d else [],
+            truth=json.loads(str(d["truth_json"])) if "truth_json" in d else None,
+        )  # fmt: skip
+    except CausalGSError as e:
+        raise CausalGSError(f"{path}: {e}") from None
+
+
+def noise_floor(obs: Observation, window: int = 7) -> float:
+    """The measurement noise σ (m, per coordinate), estimated from the fit window alone: the RMS of what a local
+    cubic (Savitzky–Golay, ``window`` frames) leaves of every trajectory, corrected for the degrees of freedom the
+    smoother takes. Smooth motion leaves nothing; noise leaves (1 − 4/window) of its variance."""
+    from scipy.signal import savgol_filter
+
+    x = obs.x[: obs.observed]
+    w = min(window, len(x) - (1 - len(x) % 2))
+    if w < 5:
+        return 0.0
+    smooth = savgol_filter(x, w, 3, axis=0, mode="interp")
+    r = x - smooth
+    dof = 1.0 - 4.0 / w
+    return float(np.sqrt((r**2).mean() / max(dof, 1e-6)))
+
+
+# -- synthetic observations -------------------------------------------------------------------------------------------
+
+
+def synthesize(
+    scene: str,
+    effects: str | None = None,
+    *,
+    seed: int = 0,
+    points: int = 256,
+    frames: int = 36,
+    observed: int | None = None,
+    fps: float = 24.0,
+    noise: float = 0.0,
+    rest_noise: float = 0.0,
+    reference_res: int = 48,
+    progress: bool = False,
+) -> Observation:
+    """Simulate the built-in ``scene`` (``causalgs.synth.physics.SETUPS``) with the effects spec ``effects`` (None:
+    the scene's own) on the reference grid and observe ``points`` of its particles (spread over the bodies by
+    volume) with Gaussian noise of ``noise`` m per coordinate. ``rest_noise`` perturbs the first frame only (a
+    noisy reconstruction of the rest shape). ``observed`` defaults to the paper's 3/4 protocol."""
+    from causalgs.synth import physics
+
+    if scene not in physics.SETUPS:
+        raise CausalGSError(f"unknown scene '{scene}'; choose one of: {', '.join(sorted(physics.SETUPS))}")
+    if frames < 4 or points < 1:
+        raise CausalGSError(f"frames = {frames} must be >= 4 and points = {points} >= 1")
+    rng = np.random.default_rng(seed)
+    setup = physics.SETUPS[scene](seed=seed, effects=effects, reference_res=reference_res)
+    run = physics.simulate(setup, frames, fps, progress=progress)  # on the float32 runtime (it initialises it)
+    owner = run["owner"]
+    volume = np.array([(owner == b).sum() for b in range(len(setup.bodies))], dtype=np.float64) * run["spacing"] ** 3
+    share = volume / volume.sum()
+    counts = np.maximum(1, np.round(share * points).astype(int))
+    idx, body, vol = [], [], []
+    for b, n in enumerate(counts):
+        mine = np.nonzero(owner == b)[0]
+        pick = np.sort(rng.choice(mine, size=min(n, len(mine)), replace=False))
+        idx.append(pick)
+        body.append(np.full(len(pick), b))
+        vol.append(np.full(len(pick), volume[b] / len(pick)))
+    idx = np.concatenate(idx)
+    x = run["x"][:, idx].astype(np.float64)
+    x = x + noise * rng.standard_normal(x.shape)
+    x[0] += rest_noise * rng.standard_normal(x[0].shape)
+    eff = run["effects"]
+    truth = {
+        "scene": scene,
+        "effects_spec": eff.spec(),
+        "effects": {t: {k: v.tolist() for k, v in eff.values(t).items()} for t in eff.names()},
+        "bodies": [{"name": b.name, "E": b.E, "nu": b.nu, "density": b.density, "velocity": list(b.velocity),
+                    "omega": list(b.omega)} for b in setup.bodies],  # fmt: skip
+        "reference_res": reference_res,
+        "noise": noise,
+        "rest_noise": rest_noise,
+        "seed": seed,
+    }
+    ground = float(eff.get("ground", "d")[0]) if "ground" in eff.names() else None
+    if ground is None and "ground_sticky" in eff.names():
+        ground = float(eff.get("ground_sticky", "d")[0])
+    dens = float(np.average([b.density for b in setup.bodies], weights=volume))
+    return Observation(
+        times=np.arange(frames) / fps, x=x, vol=np.concatenate(vol), body=np.concatenate(body),
+        observed=observed if observed is not None else max(3, round(frames * 67 / 89)), lo=setup.lo, hi=setup.hi,
+        density=dens, ground=ground, noise=noise if noise > 0 else None, names=[b.name for b in setup.bodies],
+        truth=truth,
+    )  # fmt: skip
