@@ -142,13 +142,16 @@ class PhysicsModel:
                 out.append(k.internal(v))
         return torch.tensor(out, dtype=torch.float64)
 
-    def fitted_twists(self, frames: int = 3) -> np.ndarray:
-        """[B, 6] (u, ω) per body: the rigid velocity field that best fits the displacements over the first
-        ``frames`` frames (least squares; u at the body's rest centroid)."""
+    def fitted_twists(self, frames: int = 5) -> np.ndarray:
+        """[B, 6] (u, ω) per body: the rigid velocity field that best fits the initial velocities of the points
+        (the slope at t = 0 of a least-squares parabola through each point's first ``frames`` positions, so gravity
+        does not bias it), u at the body's rest centroid."""
         obs = self.obs
-        k = min(frames, obs.observed - 1)
-        dt = obs.times[k] - obs.times[0]
-        v = (obs.x[k] - obs.x[0]) / dt
+        k = max(3, min(frames, obs.observed))
+        t = obs.times[:k] - obs.times[0]
+        A = np.stack([np.ones_like(t), t, 0.5 * t**2], axis=1)
+        coef, *_ = np.linalg.lstsq(A, obs.x[:k].reshape(k, -1), rcond=None)
+        v = coef[1].reshape(-1, 3)
         out = np.zeros((obs.bodies, 6))
         c = self.centroids.double().numpy()
         for b in range(obs.bodies):

@@ -1,0 +1,87 @@
+"""The catalogue of effects discovery may add: each a few bounded parameters of a registered simulator effect.
+
+A :class:`Candidate` says which term it adds to (or changes in) the model's effects spec, which parameters are then
+fitted, a probe value for the one-rollout sensitivity screen, the law in words, the residual signature it predicts
+(the *driver* its residual acceleration is proportional to) and what it is confused with
+(``../shared/DISCOVERY.md``). A candidate applies only where the base model lacks it: linear drag is not a
+discovery for a model that already has linear drag; friction is one only for a model whose ground is frictionless
+and does not learn μ.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from causalgs.errors import CausalGSError
+from causalgs.sim.effects import Effects
+
+
+@dataclass(frozen=True)
+class Candidate:
+    key: str  # short name used on the command line and in reports
+    title: str  # in words
+    law: str  # the law, with the parameter names as in ``params``
+    effect: str  # registry effect it adds or changes
+    params: tuple[str, ...]  # fitted parameter names (Effects.param_names of the changed spec)
+    probe: tuple[float, ...]  # one value per parameter for the sensitivity rollout
+    driver: str  # residual signature: "const", "v", "vv", "contact", "internal", "plastic"
+    confused_with: tuple[str, ...] = ()
+    replaces: str | None = None  # a base effect this one replaces (sticky ground replaces ground)
+    start: tuple[float, ...] | None = None  # value before fitting (default 0: the effect off)
+
+    def applies(self, base: Effects, learn) -> bool:
+        names = base.names()
+        if self.key == "friction":
+            return "ground" in names and float(base.get("ground", "mu")[0]) == 0.0 and "ground.mu" not in learn
+        if self.replaces is not None:
+            return self.replaces in names and self.effect not in names
+        return self.effect not in names
+
+    def spec(self, base: Effects) -> str:
+        """The base spec with this candidate's term added (at its start values)."""
+        eff = Effects.from_spec(base.spec())
+        if self.key == "friction":
+            return eff.spec()  # μ is already a term of the ground; it starts at the base's 0
+        parts = [p for p in eff.spec().split(";") if p and p.split(":")[0] != self.replaces]
+        if self.replaces is not None and self.replaces in eff.names():
+            d = float(eff.get(self.replaces, "d")[0])
+            n = ",".join(repr(float(a)) for a in eff.get(self.replaces, "n"))
+            parts.append(f"{self.effect}:n={n}:d={d!r}")
+        else:
+            start = self.start or tuple(0.0 for _ in self.params)
+            vals = ",".join(repr(float(v)) for v in start)
+            param = self.params[0].split(".")[1].split("[")[0]
+            parts.append(f"{self.effect}:{param}={vals}")
+        return ";".join(parts)
+
+
+CATALOGUE: tuple[Candidate, ...] = (
+    Candidate("force", "uniform force field", "a = b", "force", ("force.b[0]", "force.b[1]", "force.b[2]"),
+              (0.5, 0.5, 0.5), "const", ("gravity",)),
+    Candidate("linear_drag", "linear drag", "a = −c·v", "linear_drag", ("linear_drag.c",), (0.3,), "v",
+              ("quadratic_drag", "damping")),
+    Candidate("quadratic_drag", "quadratic drag", "a = −k·|v|·v", "quadratic_drag", ("quadratic_drag.k",), (0.3,),
+              "vv", ("linear_drag",)),
+    Candidate("damping", "material damping (Kelvin–Voigt viscosity)", "σ += 2·eta·sym(∇v)", "damping",
+              ("damping.eta",), (3.0,), "internal", ("linear_drag",)),
+    Candidate("friction", "Coulomb friction at the ground", "|Δv_t| ≤ mu·|Δv_n| at contact", "ground",
+              ("ground.mu",), (0.3,), "contact", ("ground_sticky", "linear_drag")),
+    Candidate("sticky", "sticky ground", "v = 0 at contact", "ground_sticky", ("ground_sticky.d",), (0.0,),
+              "contact", ("friction",), replaces="ground"),
+    Candidate("plasticity", "plasticity (von Mises yield)", "|dev τ| ≤ yield_stress", "plasticity",
+              ("plasticity.yield_stress",), (2e3,), "plastic", (), start=(1e5,)),
+)  # fmt: skip
+
+BY_KEY = {c.key: c for c in CATALOGUE}
+
+
+def select(keys=None) -> list[Candidate]:
+    """Candidates by key (default: the whole catalogue); an unknown key is a one-line error."""
+    if keys is None:
+        return list(CATALOGUE)
+    out = []
+    for k in keys:
+        if k not in BY_KEY:
+            raise CausalGSError(f"unknown candidate '{k}'; choose from: {', '.join(BY_KEY)}")
+        out.append(BY_KEY[k])
+    return out

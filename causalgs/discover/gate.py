@@ -1,0 +1,94 @@
+"""The gate a candidate must pass to be called a discovery, and the uncertainty of what it found.
+
+A refit candidate is accepted only if all of these hold (``../shared/DISCOVERY.md``):
+
+1. the held-out future error (frames never fitted) drops by at least ``future_drop`` (15%);
+2. the Bayesian information criterion improves with an *effective* sample size n_eff = frames × 3 × clusters
+   (residuals of neighbouring points and frames are strongly correlated; counting every point would reward any
+   addition);
+3. every new parameter is at least ``sigmas`` (3) standard errors from its "off" value, the standard errors from a
+   moving-block bootstrap over frames of the linearised refit (naive Gauss–Newton errors assume independent
+   residuals and come out far too small);
+4. the refit reaches the floor: its fit-window RMS is within ``floor_factor`` (1.1×) of the best any model
+   reached on this data, and below the base's; otherwise the verdict is "not converged" for that candidate.
+
+Intervals are the bootstrap's 2.5–97.5% percentiles around the fitted value.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class GateConfig:
+    future_drop: float = 0.15
+    sigmas: float = 3.0
+    floor_factor: float = 1.1
+    clusters_per_body: int = 4
+    block: int = 4  # frames per bootstrap block
+    resamples: int = 400
+    seed: int = 0
+
+
+def effective_n(frames: int, bodies: int, points: int, clusters_per_body: int) -> int:
+    """frames × 3 coordinates × independent point clusters (at most the number of points)."""
+    return int(frames * 3 * min(points, bodies * clusters_per_body))
+
+
+def bic(mse: float, n_eff: int, k: int) -> float:
+    """n·ln(mse) + k·ln(n) (Gaussian residuals; ``mse`` in any fixed unit)."""
+    return n_eff * math.log(max(mse, 1e-300)) + k * math.log(n_eff)
+
+
+def block_bootstrap(J: np.ndarray, r: np.ndarray, frames: int, cfg: GateConfig) -> np.ndarray:
+    """[resamples, k] parameter deviations of the linearised least squares J δ ≈ r* when the residual ``r``
+    (flattened [frames, …]) is resampled in blocks of ``cfg.block`` whole frames (every point of a frame moves
+    together, so spatial correlation is kept too)."""
+    rng = np.random.default_rng(cfg.seed)
+    R = r.reshape(frames, -1)
+    nb = max(1, math.ceil(frames / cfg.block))
+    starts_max = max(1, frames - cfg.block + 1)
+    pinv = np.linalg.pinv(J)
+    out = np.empty((cfg.resamples, J.shape[1]))
+    for s in range(cfg.resamples):
+        idx = np.concatenate([np.arange(a, a + cfg.block) for a in rng.integers(0, starts_max, size=nb)])[:frames]
+        idx = np.minimum(idx, frames - 1)
+        out[s] = pinv @ R[idx].reshape(-1)
+    return out
+
+
+@dataclass
+class Verdict:
+    passed: bool
+    checks: dict = field(default_factory=dict)
+    reasons: list = field(default_factory=list)
+
+
+def judge(*, base_train: float, base_future: float, train: float, future: float, best_train: float,
+          k_new: int, n_eff: int, k_base: int, z: dict, cfg: GateConfig) -> Verdict:  # fmt: skip
+    """Apply the four checks of the module docstring. ``*_train``/``*_future``: mean squared errors (one unit);
+    ``z``: new parameter → |value − off| / standard error."""
+    drop = 1.0 - future / max(base_future, 1e-300)
+    d_bic = bic(train, n_eff, k_base + k_new) - bic(base_train, n_eff, k_base)
+    floor_ok = train <= (cfg.floor_factor**2) * best_train and train < base_train
+    checks = {
+        "future_drop": drop,
+        "delta_bic": d_bic,
+        "z": z,
+        "train_rms_ratio_to_best": math.sqrt(train / max(best_train, 1e-300)),
+    }
+    reasons = []
+    if drop < cfg.future_drop:
+        reasons.append(f"held-out error drops {100 * drop:.0f}% (< {100 * cfg.future_drop:.0f}%)")
+    if d_bic >= 0:
+        reasons.append(f"BIC does not improve (Δ = {d_bic:+.1f})")
+    weak = [p for p, v in z.items() if not v >= cfg.sigmas]
+    if weak:
+        reasons.append(f"not significant: {', '.join(f'{p} ({z[p]:.1f} SE)' for p in weak)}")
+    if not floor_ok:
+        reasons.append("the refit does not reach the floor (not converged)")
+    return Verdict(not reasons, checks, reasons)

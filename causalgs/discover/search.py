@@ -1,0 +1,281 @@
+"""The discovery loop: calibrate the base, map the disagreement, screen the catalogue, refit the finalists, gate,
+name, repair, repeat.
+
+:func:`discover` returns a plain dict (the body of ``report.json``) and the trajectories the plots need. Verdicts:
+
+- ``"discovered"``: one or more named effects passed the gate, in the order they were added;
+- ``"ambiguous"``: two or more candidates passed in the same round and the data does not separate them (their
+  held-out errors and information criteria are within the margins below); all are listed as the ambiguity set;
+- ``"no missing effect"``: no candidate passed and a small free residual force does not help either;
+- ``"unexplained discrepancy"``: no candidate passed, but a residual force (a constant acceleration per body and
+  time block, fitted to the residual accelerations) explains much of the base's residual: something is missing that
+  the catalogue does not name.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from causalgs.discover import residuals as R
+from causalgs.discover.calibrate import UNIT, Fit, calibrate, fit_frames, mse
+from causalgs.discover.candidates import Candidate, select
+from causalgs.discover.gate import GateConfig, block_bootstrap, effective_n, judge
+from causalgs.discover.model import PhysicsModel
+from causalgs.discover.observation import Observation, noise_floor
+from causalgs.discover.screen import screen, sensitivities, transfer
+from causalgs.errors import CausalGSError
+
+
+@dataclass
+class DiscoverConfig:
+    res: int = 24  # model grid cells across the box
+    starts: tuple[float, ...] = (1e4, 1e5)  # starting stiffnesses of the base calibration (Pa)
+    iterations: int = 25  # L-BFGS iterations per calibration
+    finalists: int = 3  # candidates refitted per round
+    min_gain: float = 0.02  # screen gain below which a candidate is not refitted
+    max_effects: int = 2
+    ambiguity_bic: float = 10.0  # ΔBIC within which two passing candidates are not separated
+    ambiguity_future: float = 0.15  # relative held-out error within which two passing candidates tie
+    unexplained_gain: float = 0.5  # residual-force variance explained above which a discrepancy is "unexplained"
+    gate: GateConfig = field(default_factory=GateConfig)
+
+
+@dataclass
+class State:
+    """One calibrated model and its errors."""
+
+    model: PhysicsModel
+    fit: Fit
+    train: float  # mse over the fit window (cm²)
+    future: float  # mse over the held-out frames (cm²)
+    sim: np.ndarray  # [T-1, P, 3] rollout at every frame after the first (m)
+
+
+def _state(model: PhysicsModel, fit: Fit) -> State:
+    obs = model.obs
+    with torch.no_grad():
+        sim = model.rollout(fit.theta).numpy()
+    fr = fit_frames(model)
+    fut = list(range(obs.observed, len(obs.times)))
+    d = ((sim - obs.x[1:]) / UNIT) ** 2
+    train = float(d[[f - 1 for f in fr]].mean())
+    future = float(d[[f - 1 for f in fut]].mean()) if fut else float("nan")
+    return State(model, fit, train, future, sim)
+
+
+def residual_force_gain(sim: np.ndarray, obs: Observation, frames, blocks: int = 4) -> float:
+    """Fraction of the residual accelerations' variance that a free force explains: one constant acceleration per
+    body and per time block (a deliberately flexible, unnamed correction)."""
+    a = R.residual_accelerations(sim, obs, frames)
+    total = float((a**2).sum())
+    if total <= 0:
+        return 0.0
+    explained = 0.0
+    for chunk in np.array_split(np.arange(len(frames)), blocks):
+        for b in range(obs.bodies):
+            r = a[chunk][:, obs.body == b].reshape(-1, 3)
+            explained += float((r.mean(0) ** 2).sum() * len(r))
+    return explained / total
+
+
+def _disagreement(state: State, obs: Observation, floor: float) -> dict:
+    frames = list(range(1, len(obs.times)))
+    curve = R.error_curve(state.sim, obs, frames)
+    dx = (obs.hi[0] - obs.lo[0]) / state.model.res
+    depart = R.first_departure(curve["all"], frames, floor)
+    out = {
+        "frames": frames,
+        "error": curve["all"].tolist(),
+        "body_errors": {n: curve["bodies"][b].tolist() for b, n in enumerate(obs.names)},
+        "floor": floor,
+        "first_departure": None,
+    }
+    if depart is not None:
+        out["first_departure"] = {"frame": depart, "time": float(obs.times[depart]),
+                                  **R.region(state.sim[depart - 1], obs, depart, dx)}  # fmt: skip
+    touch = R.contact(obs, dx)[1:]
+    d2 = ((state.sim - obs.x[1:]) ** 2).sum(-1)
+    out["by_contact"] = {
+        "ground contact": float(np.sqrt(d2[touch].mean())) if touch.any() else None,
+        "flight": float(np.sqrt(d2[~touch].mean())) if (~touch).any() else None,
+    }
+    fr = fit_frames(state.model)
+    a = R.residual_accelerations(state.sim[[f - 1 for f in fr]], obs, fr)
+    drv = R.drivers(obs, fr, dx)
+    out["signatures"] = R.signatures(a, drv, obs.body)
+    out["residual_force_gain"] = residual_force_gain(state.sim[[f - 1 for f in fr]], obs, fr)
+    return out
+
+
+def _refit(base: State, s, cfg: DiscoverConfig) -> State:
+    c: Candidate = s.candidate
+    model = s.model
+    th = s.theta.clone()
+    for p, probe in zip(c.params, c.probe, strict=True):  # start the new parameters off zero (softplus is flat there)
+        i = model.index(p)
+        start = s.step.get(p, probe)
+        if c.replaces is None:
+            start = start if start > 0.1 * abs(probe) else 0.5 * abs(probe)
+            if p.startswith("force."):
+                start = s.step.get(p, 0.0)
+        th[i] = model.knobs[i].internal(float(start))
+    fits = [calibrate(model, th, iterations=cfg.iterations)]
+    alt = th.clone()  # a second start at another stiffness: the missing effect biases the base stiffness
+    for i, k in enumerate(model.knobs):
+        if k.kind == "E":
+            alt[i] = th[i] - 1.0 if th[i] > 0 else th[i] + 1.0
+    fits.append(calibrate(model, alt, iterations=cfg.iterations))
+    best = min(fits, key=lambda f: f.loss)
+    return _state(model, best)
+
+
+def _uncertainty(state: State, params, cfg: DiscoverConfig) -> dict:
+    """Bootstrap intervals and z-scores of ``params`` at the refit (see :mod:`causalgs.discover.gate`)."""
+    model, obs = state.model, state.model.obs
+    fr = fit_frames(model)
+    th = state.fit.theta
+    J = sensitivities(model, th, fr)
+    r = (obs.x[fr] - state.sim[[f - 1 for f in fr]]).reshape(-1) / UNIT
+    dev = block_bootstrap(J, r, len(fr), cfg.gate)  # [S, k] in internal units
+    vals = model.values(th)
+    out = {}
+    for p in params:
+        i = model.index(p)
+        knob = model.knobs[i]
+        samples = np.array([float(knob.value(torch.tensor(float(th[i]) + d))) for d in dev[:, i]])
+        se = float(samples.std())
+        off = 0.0 if knob.lower is not None or knob.offset == 0.0 else knob.offset
+        lo, hi = np.percentile(samples, [2.5, 97.5])
+        out[p] = {"value": vals[p], "se": se, "interval": [float(lo), float(hi)],
+                  "z": abs(vals[p] - off) / se if se > 0 else math.inf}  # fmt: skip
+    return out
+
+
+def _law(c: Candidate, unc: dict) -> str:
+    parts = []
+    for p in c.params:
+        u = unc[p]
+        short = p.split(".", 1)[1]
+        parts.append(f"{short} = {u['value']:.3g} [{u['interval'][0]:.3g}, {u['interval'][1]:.3g}]")
+    return f"{c.title}: {c.law}, " + ", ".join(parts)
+
+
+def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: DiscoverConfig | None = None,
+             log=None) -> tuple[dict, dict]:  # fmt: skip
+    """Run the loop of the module docstring on ``obs`` with the base effects ``spec`` (and the effect parameters
+    ``learn`` fitted with it). Returns (report, trajectories): the report is JSON-ready; trajectories holds the
+    base and final rollouts for the plots."""
+    cfg = config or DiscoverConfig()
+    log = log or (lambda msg: None)
+    t0 = time.monotonic()
+    sigma = obs.noise if obs.noise is not None else noise_floor(obs)
+    base_model = PhysicsModel(obs, spec, learn, res=cfg.res)
+    log(f"calibrating the base model ({obs.points} points, {obs.bodies} bodies, starts {list(cfg.starts)})")
+    fits = []
+    for E in cfg.starts:
+        fits.append(calibrate(base_model, base_model.initial(E=E), iterations=cfg.iterations))
+    base = _state(base_model, min(fits, key=lambda f: f.loss))
+    first = base
+    report = {
+        "verdict": None,
+        "discovered": [],
+        "ambiguous": [],
+        "rounds": [],
+        "noise": sigma,
+        "base": {"spec": spec, "learn": list(learn), "values": base_model.values(base.fit.theta),
+                 "starts": {f"{f.start:.3g}": f.loss for f in fits}},  # fmt: skip
+    }
+    floor = max(math.sqrt(3) * sigma, math.sqrt(base.train) * UNIT / 4)
+    report["disagreement"] = _disagreement(base, obs, floor)
+    pool = [c for c in select(candidates) if c.applies(base_model.effects, base_model.learn)]
+    current = base
+    best_train = base.train
+    for round_ in range(cfg.max_effects):
+        pool = [c for c in pool if c.applies(current.model.effects, current.model.learn)]
+        if not pool:
+            break
+        log(f"round {round_ + 1}: screening {', '.join(c.key for c in pool)}")
+        screened = screen(current.model, current.fit.theta, pool, fit_frames(current.model))
+        finalists = [s for s in screened if s.gain >= cfg.min_gain][: cfg.finalists]
+        entry = {"screen": [{"effect": s.candidate.key, "gain": s.gain, "step": s.step} for s in screened],
+                 "refits": []}  # fmt: skip
+        report["rounds"].append(entry)
+        refits = []
+        for s in finalists:
+            log(f"  refitting {s.candidate.key}")
+            try:
+                st = _refit(current, s, cfg)
+            except CausalGSError as e:
+                entry["refits"].append({"effect": s.candidate.key, "error": str(e)})
+                continue
+            refits.append((s.candidate, st))
+            best_train = min(best_train, st.train)
+        n_eff = effective_n(len(fit_frames(current.model)), obs.bodies, obs.points, cfg.gate.clusters_per_body)
+        passed = []
+        for c, st in refits:
+            unc = _uncertainty(st, c.params, cfg)
+            z = {p: u["z"] for p, u in unc.items()}
+            if c.replaces is not None:  # structural: the plane offset is not a new parameter of interest
+                z = {}
+            v = judge(base_train=current.train, base_future=current.future, train=st.train, future=st.future,
+                      best_train=best_train, k_new=len(c.params), n_eff=n_eff,
+                      k_base=len(current.model.knobs), z=z, cfg=cfg.gate)  # fmt: skip
+            res = {"effect": c.key, "train_mse_cm2": st.train, "future_mse_cm2": st.future, "passed": v.passed,
+                   "checks": v.checks, "reasons": v.reasons, "params": unc,
+                   "values": st.model.values(st.fit.theta)}  # fmt: skip
+            entry["refits"].append(res)
+            if v.passed:
+                passed.append((c, st, unc, v))
+        if not passed:
+            break
+        passed.sort(key=lambda t: t[1].future)
+        top = passed[0]
+        ties = [
+            p for p in passed[1:]
+            if abs(p[3].checks["delta_bic"] - top[3].checks["delta_bic"]) < cfg.ambiguity_bic
+            and p[1].future <= top[1].future * (1 + cfg.ambiguity_future)
+        ]  # fmt: skip
+        if ties:
+            report["ambiguous"] = [
+                {"effect": c.key, "law": _law(c, unc), "future_mse_cm2": st.future}
+                for c, st, unc, _ in [top, *ties]
+            ]
+            current = top[1]
+            break
+        c, st, unc, v = top
+        sig = report["disagreement"]["signatures"]
+        report["discovered"].append({
+            "effect": c.key,
+            "title": c.title,
+            "law": _law(c, unc),
+            "params": {p: unc[p]["value"] for p in c.params},
+            "interval": {p: unc[p]["interval"] for p in c.params},
+            "evidence": {"signature": c.driver, "signature_share": sig.get(c.driver),
+                         "future_drop": v.checks["future_drop"], "delta_bic": v.checks["delta_bic"],
+                         "z": {p: unc[p]["z"] for p in c.params}},
+            "runners_up": [{"effect": o.key, "passed": False} for o, _ in refits if o.key != c.key],
+            "base_before": current.model.values(current.fit.theta),
+            "base_after": st.model.values(st.fit.theta),
+            "spec": st.model.spec_at(st.fit.theta),
+        })  # fmt: skip
+        current = st
+    if report["ambiguous"]:
+        report["verdict"] = "ambiguous"
+    elif report["discovered"]:
+        report["verdict"] = "discovered"
+    elif report["disagreement"]["residual_force_gain"] >= cfg.unexplained_gain and math.sqrt(base.train) * UNIT > 2 * floor:
+        report["verdict"] = "unexplained discrepancy"
+    else:
+        report["verdict"] = "no missing effect"
+    report["error_before"] = {"fit_rms_m": math.sqrt(first.train) * UNIT, "future_rms_m": math.sqrt(first.future) * UNIT}
+    report["error_after"] = {"fit_rms_m": math.sqrt(current.train) * UNIT,
+                             "future_rms_m": math.sqrt(current.future) * UNIT}  # fmt: skip
+    report["final_spec"] = current.model.spec_at(current.fit.theta)
+    report["seconds"] = time.monotonic() - t0
+    traj = {"before": first.sim, "after": current.sim}
+    return report, traj
