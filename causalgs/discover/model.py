@@ -200,7 +200,7 @@ class PhysicsModel:
         with torch.no_grad():
             u = self.unpack(theta)
         out = {}
-        for i, k in enumerate(self.knobs):
+        for _i, k in enumerate(self.knobs):
             if k.kind == "E":
                 out[k.name] = float(u["E_body"][k.body])
             elif k.kind == "nu":

@@ -112,7 +112,7 @@ def load_observation(path) -> Observation:
     try:
         with np.load(path, allow_pickle=False) as z:
             d = {k: z[k] for k in z.files}
-    except Exception as e:  # noqa: BLE001 - any unreadable archive is the same error for a user
+    except Exception as e:
         raise CausalGSError(f"{path}: not a readable npz archive ({type(e).__name__})") from None
     need = ("times", "x", "vol", "body", "observed", "lo", "hi")
     missing = [k for k in need if k not in d]
@@ -202,7 +202,7 @@ def synthesize(
         "effects_spec": eff.spec(),
         "effects": {t: {k: v.tolist() for k, v in eff.values(t).items()} for t in eff.names()},
         "bodies": [{"name": b.name, "E": b.E, "nu": b.nu, "density": b.density, "velocity": list(b.velocity),
-                    "omega": list(b.omega)} for b in setup.bodies],  # fmt: skip
+                    "omega": list(b.omega)} for b in setup.bodies],
         "reference_res": reference_res,
         "noise": noise,
         "rest_noise": rest_noise,

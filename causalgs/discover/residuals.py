@@ -55,7 +55,7 @@ def region(sim_frame: np.ndarray, obs: Observation, frame: int, band: float, top
     d = np.sqrt(((sim_frame - obs.x[frame]) ** 2).sum(-1))
     per_body = [float(np.sqrt((d[obs.body == b] ** 2).mean())) for b in range(obs.bodies)]
     b = int(np.argmax(per_body))
-    k = max(1, int(round(top * len(d))))
+    k = max(1, round(top * len(d)))
     worst = np.argsort(d)[-k:]
     touching = contact(obs, band)[frame][worst].mean() if obs.ground is not None else 0.0
     return {

@@ -22,12 +22,12 @@ import numpy as np
 import torch
 
 from causalgs.discover import residuals as R
-from causalgs.discover.calibrate import UNIT, Fit, calibrate, fit_frames, mse
+from causalgs.discover.calibrate import UNIT, Fit, calibrate, fit_frames
 from causalgs.discover.candidates import Candidate, select
 from causalgs.discover.gate import GateConfig, block_bootstrap, effective_n, judge
 from causalgs.discover.model import PhysicsModel
 from causalgs.discover.observation import Observation, noise_floor
-from causalgs.discover.screen import screen, sensitivities, transfer
+from causalgs.discover.screen import screen, sensitivities
 from causalgs.errors import CausalGSError
 
 
@@ -188,7 +188,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         "rounds": [],
         "noise": sigma,
         "base": {"spec": spec, "learn": list(learn), "values": base_model.values(base.fit.theta),
-                 "starts": {f"{f.start:.3g}": f.loss for f in fits}},  # fmt: skip
+                 "starts": {f"{f.start:.3g}": f.loss for f in fits}},
     }
     floor = max(math.sqrt(3) * sigma, math.sqrt(base.train) * UNIT / 4)
     report["disagreement"] = _disagreement(base, obs, floor)
@@ -268,11 +268,13 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         report["verdict"] = "ambiguous"
     elif report["discovered"]:
         report["verdict"] = "discovered"
-    elif report["disagreement"]["residual_force_gain"] >= cfg.unexplained_gain and math.sqrt(base.train) * UNIT > 2 * floor:
+    elif (report["disagreement"]["residual_force_gain"] >= cfg.unexplained_gain
+          and math.sqrt(base.train) * UNIT > 2 * floor):  # fmt: skip
         report["verdict"] = "unexplained discrepancy"
     else:
         report["verdict"] = "no missing effect"
-    report["error_before"] = {"fit_rms_m": math.sqrt(first.train) * UNIT, "future_rms_m": math.sqrt(first.future) * UNIT}
+    report["error_before"] = {"fit_rms_m": math.sqrt(first.train) * UNIT,
+                              "future_rms_m": math.sqrt(first.future) * UNIT}  # fmt: skip
     report["error_after"] = {"fit_rms_m": math.sqrt(current.train) * UNIT,
                              "future_rms_m": math.sqrt(current.future) * UNIT}  # fmt: skip
     report["final_spec"] = current.model.spec_at(current.fit.theta)
