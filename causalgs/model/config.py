@@ -74,6 +74,11 @@ class PhysicsConfig:
     views_per_iter: int = 2
     lambda_image: float = 1.0
     lambda_consistency: float = 0.02  # on the mean Charbonnier distance to the kinematic positions, in grid cells
+    # The forecast's start (Trainer._assimilate): frames before the end of the window it starts from (0: off, start
+    # at the last observed frame with the tracked velocity), Adam iterations and rate (m/s, rad/s per step).
+    assimilate: int = 12
+    assimilate_iterations: int = 40
+    lr_assimilate: float = 0.02
 
 
 @dataclass

@@ -45,7 +45,8 @@ class FieldsConfig:
     width: int = 64  # hidden width of every MLP
     depth: int = 2  # hidden layers of every MLP
     pos_freqs: int = 4  # frequencies of γ(p)
-    time_freqs: int = 4  # frequencies of γ_t(t)
+    time_freqs: int = 6  # frequencies of γ_t(t): the shortest period is 1/16 of the window (4 frames of 67), so a
+    # bounce or an impact, which turns the velocity within a frame or two, is not smoothed over a dozen frames
     E_range: tuple[float, float] = (2.0e3, 4.0e5)  # Pa
     E_init: float = 1.0e5  # Pa, where f_mat starts (stiff: a soft start sags at rest, and the fit is slow to leave it)
     nu_range: tuple[float, float] = (0.1, 0.45)

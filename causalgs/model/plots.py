@@ -8,7 +8,8 @@ from pathlib import Path
 
 from causalgs.io import write_bytes
 
-_CURVES = {"canonical": ("loss",), "kinematic": ("loss",), "physics": ("image", "consistency")}
+_CURVES = {"canonical": ("loss",), "kinematic": ("loss",), "physics": ("image", "consistency"),
+           "assimilate": ("loss",)}
 
 
 def plot_losses(log_path, out_path) -> None:

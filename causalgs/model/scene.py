@@ -83,6 +83,10 @@ class CausalGS(torch.nn.Module):
         self.register_buffer("dynamic", torch.ones(gaussians.n, dtype=torch.bool))
         self.register_buffer("box", torch.zeros(2, 3, dtype=torch.float64))  # simulation box lo, hi (0 = unset)
         self.effect_params = torch.nn.Parameter(torch.zeros(0, dtype=torch.float64))
+        # The forecast's start (the assimilation stage, see Trainer._assimilate): a per-pattern twist added to the
+        # observed velocities at frame ``forecast_start`` (-1: none; the forecast starts at the last observed frame).
+        self.forecast_twists = torch.nn.Parameter(torch.zeros(config.fields.patterns, 6))
+        self.register_buffer("forecast_start", torch.tensor(-1, dtype=torch.int64))
         self.particles: Particles | None = None
         self._sim: Simulator | None = None
 
@@ -106,6 +110,9 @@ class CausalGS(torch.nn.Module):
                     self.effect_params = torch.nn.Parameter(new)
                 else:
                     self.register_buffer(name, new)
+        if prefix + "forecast_start" not in state_dict:  # saved before the assimilation stage existed
+            state_dict[prefix + "forecast_start"] = torch.tensor(-1, dtype=torch.int64)
+            state_dict[prefix + "forecast_twists"] = torch.zeros_like(self.forecast_twists)
         if prefix + "has_tracked" not in state_dict:  # a model saved before the tracked copy existed
             for k in [k for k in state_dict if k.startswith(prefix + "fields.")]:
                 state_dict[prefix + "tracked." + k[len(prefix + "fields.") :]] = state_dict[k]
@@ -256,12 +263,13 @@ class CausalGS(torch.nn.Module):
             h = self.mixtures(x)
         return self.fields.materials(x, h)
 
-    def simulate(self, frames, start: int = 0) -> dict[str, torch.Tensor]:
+    def simulate(self, frames, start: int = 0, twists: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Particle x, v, F [T, P, ...] at the given frame indices (sorted, > ``start``, or ≥ 0 from the start)
         through the differentiable MPM, with the inferred materials and effects. From ``start`` = 0 the particles
         start from the inferred causes (canonical positions, the initial velocity field); from a later frame they start
         from the kinematic fit's state there (:meth:`observed_state`, a constant): a shooting segment in training, the
-        forecast after the observed window."""
+        forecast after the observed window. ``twists`` [K, 6] (later starts only) adds a rigid velocity per motion
+        pattern, blended by the tracked mixtures: the assimilation stage's correction of the observed velocity."""
         sim = self.simulator()
         c = self.causes()
         dt = _ti.torch_dtype()
@@ -273,6 +281,8 @@ class CausalGS(torch.nn.Module):
             x0, v0, C0, F0 = s["x"], s["v"], s["C"].to(dt), s["F"].to(dt)
             if self.config.physics.preload > 0:
                 F0 = self._preload(s, c).to(dt)
+            if twists is not None:
+                v0 = v0 + self.pattern_velocity(twists, x0)
         times = [(float(f) - start) / self.fps for f in frames]
         x, v, F = simulate(sim, x0.to(dt), v0.to(dt), c["E"].to(dt), c["nu"].to(dt), c["density"].to(dt), times,
                            self.effect_params.to(dt), C0=C0, F0=F0)  # fmt: skip
@@ -336,15 +346,31 @@ class CausalGS(torch.nn.Module):
         x = torch.minimum(torch.maximum(x, self.box[0].to(x.dtype) + band), self.box[1].to(x.dtype) - band)
         return {"x": x, "F": F, "v": v, "C": torch.zeros_like(F)}
 
+    def pattern_velocity(self, twists: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """v_i = Σ_k h_ik (u_k + ω_k × (x_i − c_k)) [P, 3] for twists [K, 6] (u, ω) at particle positions ``x``, with
+        the tracked mixtures h of the particles and c_k each pattern's h-weighted centroid of ``x``."""
+        with torch.no_grad():
+            h = self.mixtures(self.particles.x0.to(self.kinematic_fields.centres.dtype)).to(x.dtype)
+            c = (h.T @ x) / h.sum(0).clamp_min(1e-12)[:, None]  # [K, 3]
+        tw = twists.to(x.dtype)
+        lin = h @ (tw[:, :3] - torch.linalg.cross(tw[:, 3:], c))
+        return lin + torch.linalg.cross(h @ tw[:, 3:], x)
+
     def forecast(self, frames) -> dict[str, torch.Tensor]:
-        """Particle x, v, F [T, P, ...] at frame indices after the observed window, simulated from the last observed
-        frame's state with the inferred materials and effects: the prediction of the future from what has been
-        seen, rather than a replay of the whole sequence from t = 0."""
+        """Particle x, v, F [T, P, ...] at frame indices after the observed window, simulated with the inferred
+        materials and effects from the observed state: the prediction of the future from what has been seen, rather
+        than a replay of the whole sequence from t = 0. After the assimilation stage it starts a few frames before
+        the end of the window, from the velocity that made the simulation match those frames' images; otherwise
+        at the last observed frame."""
         last = self.train_frames - 1
         frames = [int(k) for k in frames]
         if not frames or min(frames) <= last:
             raise CausalGSError(f"forecast frames must come after the last observed frame {last}")
-        return self.simulate(frames, start=last)
+        start = int(self.forecast_start)
+        if start < 0:
+            return self.simulate(frames, start=last)
+        out = self.simulate(frames, start=start, twists=self.forecast_twists.detach())
+        return out
 
     def physical_states(self, x: torch.Tensor, F: torch.Tensor) -> list[State]:
         """Gaussian states (means, covariances) for simulated particle states x [T, P, 3], F [T, P, 3, 3]."""

@@ -21,7 +21,8 @@ TINY = {
     "canonical": {"iterations": 120, "densify_from": 40, "densify_until": 100, "densify_every": 30,
                   "max_gaussians": 3000, "sh_degree": 0, "log_every": 20},
     "kinematic": {"iterations": 30, "window_start": 3},
-    "physics": {"iterations": 3, "res": 24, "budget": 300, "window_start": 4, "lr_mat": 0.05},
+    "physics": {"iterations": 3, "res": 24, "budget": 300, "window_start": 4, "lr_mat": 0.05, "assimilate": 4,
+                "assimilate_iterations": 3},
 }  # fmt: skip
 
 
@@ -62,10 +63,11 @@ def test_fit_writes_a_complete_run(fitted):
                  "physics.npz", "losses.png"):  # fmt: skip
         assert (fitted / name).is_file(), name
     info = json.loads((fitted / "run.json").read_text())
-    assert info["status"] == "done" and set(info["stage_seconds"]) == {"canonical", "kinematic", "physics"}
+    assert info["status"] == "done"
+    assert set(info["stage_seconds"]) == {"canonical", "kinematic", "physics", "assimilate"}
     log = [json.loads(line) for line in (fitted / "log.jsonl").read_text().splitlines()]
     stages = {r["stage"] for r in log}
-    assert stages == {"canonical", "kinematic", "physics"}
+    assert stages == {"canonical", "kinematic", "physics", "assimilate"}
     phys = [r for r in log if r["stage"] == "physics" and "loss" in r]
     assert [r["it"] for r in phys] == [1, 2, 3]
     assert all(np.isfinite(r["loss"]) for r in phys)
@@ -240,10 +242,13 @@ def test_the_kinematic_fit_is_kept_through_the_physical_stage(fitted):
         a, _ = before.kinematic(tl.train_frames - 1, rotations=False)
         b, _ = after.kinematic(tl.train_frames - 1, rotations=False)
     assert torch.equal(a, b)
-    # A model saved before the tracked copy existed loads with the live fields as its kinematic path.
-    state = {k: v for k, v in after.state_dict().items() if not k.startswith("tracked.") and k != "has_tracked"}
+    # A model saved before the tracked copy (and the assimilated forecast start) existed loads with the live fields
+    # as its kinematic path and forecasts from the last observed frame.
+    old = ("has_tracked", "forecast_start", "forecast_twists")
+    state = {k: v for k, v in after.state_dict().items() if not k.startswith("tracked.") and k not in old}
     after.load_state_dict(state)
     assert not bool(after.has_tracked) and after.kinematic_fields is after.fields
+    assert int(after.forecast_start) == -1 and float(after.forecast_twists.abs().max()) == 0.0
 
 
 def test_observed_state_deformation_is_the_jacobian_of_the_kinematic_map(fitted):
@@ -315,6 +320,7 @@ def test_forecast_starts_from_the_last_observed_state(fitted):
     from causalgs.model.fit import load_model
 
     m, _, tl = load_model(fitted)
+    m.forecast_start.fill_(-1)  # without the assimilated start (tested below)
     k = tl.train_frames - 1
     s = m.observed_state(k)
     with torch.no_grad():
@@ -329,3 +335,42 @@ def test_forecast_starts_from_the_last_observed_state(fitted):
     b = states(m, [k - 1, k + 1], "mpm-open")
     assert torch.equal(a[k - 1].means, b[k - 1].means)
     assert not torch.equal(a[k + 1].means, b[k + 1].means)
+
+
+def test_assimilation_fits_the_forecast_start_to_the_last_frames(fitted):
+    """The assimilation stage starts the forecast physics.assimilate frames before the end of the window, with a
+    per-pattern velocity correction trained on those frames' images; the forecast is exactly that simulation."""
+    from causalgs.model.fit import load_model
+
+    m, _, tl = load_model(fitted)
+    n = tl.train_frames
+    begin = max(1, n - 1 - m.config.physics.assimilate)
+    assert int(m.forecast_start) == begin
+    tw = m.forecast_twists.detach()
+    assert float(tw.abs().max()) > 0
+    log = [json.loads(line) for line in (fitted / "log.jsonl").read_text().splitlines()]
+    assert [r["it"] for r in log if r["stage"] == "assimilate"] == [1, 2, 3]
+    future = [n, n + 1]
+    with torch.no_grad():
+        a = m.forecast(future)["x"]
+        b = m.simulate(future, start=begin, twists=tw)["x"]
+        c = m.simulate(future, start=begin)["x"]
+    assert torch.equal(a, b) and not torch.equal(a, c)
+
+
+def test_pattern_velocity_is_a_blend_of_rigid_twists(fitted):
+    from causalgs.model.fit import load_model
+
+    m, _, _ = load_model(fitted)
+    x = m.particles.x0.double()
+    K = m.config.fields.patterns
+    u = torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64)
+    tw = torch.cat([u.expand(K, 3), torch.zeros(K, 3, dtype=torch.float64)], dim=1)
+    assert torch.allclose(m.pattern_velocity(tw, x), u.expand_as(x), atol=1e-12)  # mixtures sum to one
+    # Linear in the twists (a correction of the observed velocity), with gradients for the assimilation stage.
+    w = torch.randn(K, 6, dtype=torch.float64)
+    v1, v2 = m.pattern_velocity(w, x), m.pattern_velocity(2 * w, x)
+    assert torch.allclose(v2, 2 * v1, atol=1e-12)
+    one = torch.zeros(K, 6, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: m.pattern_velocity(t, x), (one,))
+
