@@ -28,7 +28,6 @@ def transfer(src: PhysicsModel, theta: torch.Tensor, dst: PhysicsModel, extra: d
     """θ of ``dst`` with every knob that ``src`` also has copied over; the others at ``dst``'s start values, or at
     the physical values given in ``extra`` (by name)."""
     out = dst.initial()
-    vals = src.values(theta)
     for i, k in enumerate(dst.knobs):
         if k.name in src.names:
             out[i] = theta[src.index(k.name)]
@@ -36,7 +35,6 @@ def transfer(src: PhysicsModel, theta: torch.Tensor, dst: PhysicsModel, extra: d
             out[i] = k.internal(float(extra[k.name]))
         elif k.kind == "effect":
             out[i] = k.internal(float(dst.effects.flat()[k.index]))
-    del vals
     return out
 
 
