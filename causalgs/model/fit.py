@@ -363,7 +363,6 @@ class Trainer:
             self.progress("physics", it + 1, pc.iterations, rec)
         self.stage_seconds["physics"] = time.monotonic() - t0
 
-
     def _assimilate(self, start: int, opt_state) -> None:
         """Where the forecast starts (data assimilation): the tracked state ``physics.assimilate`` frames before the
         end of the observed window, with a rigid velocity correction per motion pattern fitted so that the simulation
@@ -382,8 +381,10 @@ class Trainer:
         if opt_state is not None:
             opt.load_state_dict(opt_state)
         frames = list(range(begin + 1, n))
+        with torch.no_grad():
+            restart = m.restart_state(begin)  # the same start every iteration
         for it in range(start, pc.assimilate_iterations):
-            out = m.simulate(frames, start=begin, twists=m.forecast_twists)
+            out = m.simulate(frames, start=begin, twists=m.forecast_twists, restart=restart)
             picks = self._sample(n, pc.views_per_iter, lowest=begin + 1)
             img_loss = 0.0
             for k, frame in picks:

@@ -263,13 +263,15 @@ class CausalGS(torch.nn.Module):
             h = self.mixtures(x)
         return self.fields.materials(x, h)
 
-    def simulate(self, frames, start: int = 0, twists: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    def simulate(self, frames, start: int = 0, twists: torch.Tensor | None = None,
+                 restart: dict | None = None) -> dict[str, torch.Tensor]:  # fmt: skip
         """Particle x, v, F [T, P, ...] at the given frame indices (sorted, > ``start``, or ≥ 0 from the start)
         through the differentiable MPM, with the inferred materials and effects. From ``start`` = 0 the particles
         start from the inferred causes (canonical positions, the initial velocity field); from a later frame they start
         from the kinematic fit's state there (:meth:`observed_state`, a constant): a shooting segment in training, the
         forecast after the observed window. ``twists`` [K, 6] (later starts only) adds a rigid velocity per motion
-        pattern, blended by the tracked mixtures: the assimilation stage's correction of the observed velocity."""
+        pattern, blended by the tracked mixtures: the assimilation stage's correction of the observed velocity.
+        ``restart``: :meth:`restart_state` of ``start`` when the caller already has it (it is a constant)."""
         sim = self.simulator()
         c = self.causes()
         dt = _ti.torch_dtype()
@@ -277,16 +279,24 @@ class CausalGS(torch.nn.Module):
         if start == 0:
             x0, v0, C0, F0 = c["x0"], c["v0"], None, None
         else:
-            s = self.observed_state(start)
-            x0, v0, C0, F0 = s["x"], s["v"], s["C"].to(dt), s["F"].to(dt)
-            if self.config.physics.preload > 0:
-                F0 = self._preload(s, c).to(dt)
+            s = restart if restart is not None else self.restart_state(start, c)
+            x0, v0, C0, F0 = s["x"], s["v"], s["C"], s["F"]
             if twists is not None:
                 v0 = v0 + self.pattern_velocity(twists, x0)
         times = [(float(f) - start) / self.fps for f in frames]
         x, v, F = simulate(sim, x0.to(dt), v0.to(dt), c["E"].to(dt), c["nu"].to(dt), c["density"].to(dt), times,
                            self.effect_params.to(dt), C0=C0, F0=F0)  # fmt: skip
         return {"x": x, "v": v, "F": F, **c}
+
+    def restart_state(self, start: int, causes: dict | None = None) -> dict[str, torch.Tensor]:
+        """The constant state a simulation from frame ``start`` > 0 begins with: :meth:`observed_state`, with the
+        preloaded F of bodies at rest (``physics.preload``), in the simulator's dtype."""
+        dt = _ti.torch_dtype()
+        s = self.observed_state(start)
+        F = s["F"]
+        if self.config.physics.preload > 0:
+            F = self._preload(s, self.causes() if causes is None else causes)
+        return {"x": s["x"], "v": s["v"], "C": s["C"].to(dt), "F": F.to(dt)}
 
     def _preload(self, s: dict, c: dict) -> torch.Tensor:
         """F for a restart from the observed state ``s`` with the bodies seen at rest already carrying their weight.
