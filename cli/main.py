@@ -57,7 +57,7 @@ def cli():
 # Built commands
 # ---------------------------------------------------------------------------------------------------------------------
 @cli.command()
-@click.argument("name", type=click.Choice(["spin", "fallingball", "jelly", "collide", "room", "all"]))
+@click.argument("name", type=click.Choice(["spin", "fallingball", "jelly", "collide", "room", "toss", "all"]))
 @out_option()
 @click.option("--views", type=click.IntRange(2, 200), default=20, show_default=True, help="Cameras on the ring.")
 @click.option("--frames", type=click.IntRange(2, 1000), default=89, show_default=True, help="Frames in time.")
@@ -96,7 +96,8 @@ def synth(name, out, views, frames, resolution, background, seed, effects, fps, 
     jelly        a soft cube dropped on the ground, wobbling
     collide      a stiff ball thrown into a soft block
     room         a static room with three objects of different materials running into each other
-    all          every scene above, each into --out/NAME (the benchmark suite)
+    toss         an elastic block tossed without spin, landing and sliding (the scene of `causalgs discover`)
+    all          the five benchmark scenes above (all but toss), each into --out/NAME
 
     All but spin are simulated by the project's MPM on a fine reference grid (--effects sets their external
     effects) and rendered from embedded surface meshes by a z-buffer rasterizer; never by the model's rasterizer.
@@ -104,12 +105,12 @@ def synth(name, out, views, frames, resolution, background, seed, effects, fps, 
     train = the first 3/4 of the frames from all but the held-out views; val = the same frames from the held-out
     views (interpolation); test = the remaining future frames from every view (extrapolation).
     """
-    from causalgs.synth import SCENES, generate
+    from causalgs.synth import BENCHMARK, generate
 
     bg = parse_rgb(background, "--background")
     if name == "all" and effects is not None:
         raise CausalGSError("--effects applies to one simulated scene, not to 'all'")
-    for n in list(SCENES) if name == "all" else [name]:
+    for n in BENCHMARK if name == "all" else [name]:
         target = Path(out) / n if name == "all" else out
         opts = {"views": views, "frames": frames, "resolution": resolution, "background": bg, "seed": seed}
         click.echo(generate(n, target, **opts, overwrite=force, effects=effects, fps=fps))
@@ -137,35 +138,12 @@ cli.add_command(eval_)
 cli.add_command(cluster)
 
 
-# ---------------------------------------------------------------------------------------------------------------------
-# Commands planned but not built yet: they say so and exit non-zero.
-# ---------------------------------------------------------------------------------------------------------------------
-def _not_built(name: str, what: str, issue: int):
-    @click.pass_context
-    def run(ctx, **_):
-        click.echo(f"Error: 'causalgs {name}' is not built yet ({what}; planned in issue #{issue}).", err=True)
-        ctx.exit(2)
-
-    run.__name__ = name
-    return run
-
-
-_PLANNED = {
-    "discover": ("find and name a physical effect the model is missing, add it and show the error shrink", 7),
-}
-
-for _name, (_what, _issue) in _PLANNED.items():
-    cli.command(
-        name=_name,
-        help=f"{_what[0].upper()}{_what[1:]}. (Not built yet: issue #{_issue}.)",
-        context_settings={"ignore_unknown_options": True, "allow_extra_args": True},
-        add_help_option=True,
-    )(click.argument("args", nargs=-1, type=click.UNPROCESSED)(_not_built(_name, _what, _issue)))
-
-
 from cli.bench import bench  # noqa: E402
+from cli.discover import discover, discover_table  # noqa: E402
 
 cli.add_command(bench)
+cli.add_command(discover)
+cli.add_command(discover_table)
 
 
 def main():

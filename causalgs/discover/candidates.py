@@ -37,6 +37,12 @@ class Candidate:
             return self.replaces in names and self.effect not in names
         return self.effect not in names
 
+    def learn(self, base_learn) -> list[str]:
+        """The effect parameters fitted with this candidate: the base's (less those of an effect it replaces) and
+        its own."""
+        keep = [n for n in base_learn if self.replaces is None or n.split(".")[0] != self.replaces]
+        return [*keep, *[p for p in self.params if p not in keep]]
+
     def spec(self, base: Effects) -> str:
         """The base spec with this candidate's term added (at its start values)."""
         eff = Effects.from_spec(base.spec())

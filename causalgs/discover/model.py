@@ -115,6 +115,8 @@ class PhysicsModel:
 
     # -- θ ----------------------------------------------------------------------------------------------------------
     def index(self, name: str) -> int:
+        if name not in self.names:
+            raise CausalGSError(f"'{name}' is not a parameter of the model ({', '.join(self.names)})")
         return self.names.index(name)
 
     def base_indices(self) -> list[int]:

@@ -88,7 +88,7 @@ def screen(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate],
     rb, _ = _residual_after(Jb, r)
     out = []
     for c in candidates:
-        model = (models or {}).get(c.key) or PhysicsModel(base.obs, c.spec(base.effects), [*base.learn, *c.params],
+        model = (models or {}).get(c.key) or PhysicsModel(base.obs, c.spec(base.effects), c.learn(base.learn),
                                                           res=base.res, E_range=base.E_range, nu_range=base.nu_range)
         if models is not None:
             models[c.key] = model

@@ -156,6 +156,18 @@ def quadratic_drag(v, x, I, dt, dx, p: ti.template(), res: ti.template()):
     return v / (1.0 + p[0] * dt * _norm(v))
 
 
+@register(
+    "attractor",
+    (Param("k", 1, (0.0,), "stiffness of the pull per unit mass (1/s²)", lower=0.0),
+     Param("c", 3, (0.0, 0.0, 0.0), "the point pulled towards (m)")),
+    doc="a pull towards a point that grows with the distance, a = -k (x - c) (a harmonic trap; scenes use it as "
+    "physics outside the discovery catalogue)",
+)
+@ti.func
+def attractor(v, x, I, dt, dx, p: ti.template(), res: ti.template()):
+    return v - dt * p[0] * (x - _vec(p, 1))
+
+
 # -- boundary conditions -----------------------------------------------------------------------------------------
 
 

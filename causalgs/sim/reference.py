@@ -73,6 +73,8 @@ def _apply_effects(v: torch.Tensor, x: torch.Tensor, I: torch.Tensor, dt: float,
             v = v * torch.exp(torch.tensor(-p["c"][0] * dt, dtype=v.dtype))
         elif name == "quadratic_drag":
             v = v / (1.0 + p["k"][0] * dt * _norm(v))
+        elif name == "attractor":
+            v = v - dt * p["k"][0] * (x - _vec(p, "c", v.dtype))
         elif name == "ground":
             n, w = _contact(v, x, p, dx)
             vn = (v @ n)[:, None]

@@ -19,7 +19,7 @@ from causalgs.errors import CausalGSError
 from causalgs.synth import physics, spin
 from causalgs.synth.writer import SynthScene, check_out, protocol, write_dataset
 
-__all__ = ["SCENES", "generate", "protocol"]
+__all__ = ["BENCHMARK", "SCENES", "generate", "protocol"]
 
 SCENES: dict[str, Callable[..., SynthScene]] = {
     "spin": spin.build,
@@ -27,9 +27,12 @@ SCENES: dict[str, Callable[..., SynthScene]] = {
     "fallingball": physics.fallingball,
     "collide": physics.collide,
     "room": physics.room,
+    "toss": physics.toss,
 }
+# The benchmark of fit / predict / eval (``causalgs synth all``); ``toss`` is the scene of ``causalgs discover``.
+BENCHMARK = ("spin", "jelly", "fallingball", "collide", "room")
 # Scenes simulated by the MPM: they take an effects spec (any terms of the simulator's registry) and show progress.
-SIMULATED = {"jelly", "fallingball", "collide", "room"}
+SIMULATED = {"jelly", "fallingball", "collide", "room", "toss"}
 
 
 # Frame rates of the scenes when --fps is not given: the spinning fan keeps turning at 24 fps; the simulated scenes

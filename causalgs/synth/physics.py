@@ -367,6 +367,30 @@ def collide_setup(*, seed: int, effects: str | None = None, reference_res: int =
     return setup
 
 
+def toss_setup(*, seed: int, effects: str | None = None, reference_res: int = REFERENCE_RES) -> PhysicsSetup:
+    """An elastic block tossed up and sideways without spin: a parabolic flight, a flat landing, then sliding and
+    wobbling on the ground. No tumbling, so its motion is not chaotic: small changes of the causes make small changes
+    of the trajectory, which is what a scene for finding a missing effect needs (``causalgs discover``). The flight
+    shows forces and drag, the landing damping and plasticity, the slide friction."""
+    rng = np.random.default_rng(seed)
+    (color,) = palette(rng, 1)
+    block = Body(
+        "block",
+        "box",
+        (rng.uniform(-0.33, -0.27), rng.uniform(-0.03, 0.03), 0.22),
+        (0.1, 0.08, 0.06),
+        E=rng.uniform(2e4, 4e4),
+        nu=0.3,
+        density=1.0e3,
+        color=color,
+        velocity=(rng.uniform(0.7, 0.9), rng.uniform(-0.05, 0.05), rng.uniform(1.0, 1.3)),
+        checker=0.05,
+    )
+    spec = effects or "gravity;ground:mu=0.3;walls"
+    return PhysicsSetup("toss", [block], spec, (-0.5, -0.5, -0.1), (0.5, 0.5, 0.9), floor_half=0.5,
+                        res=reference_res)  # fmt: skip
+
+
 def _room_walls(half: float, height: float) -> list[Mesh]:
     """Four low walls around the floor square (their inner faces), textured like the floor."""
     out = []
@@ -417,8 +441,10 @@ def _builder(make_setup, name: str):
 
 # name -> setup(seed=, effects=, reference_res=): the bodies and effects without simulating (tests use them to check
 # effect switches on trajectories alone).
-SETUPS = {"fallingball": fallingball_setup, "jelly": jelly_setup, "collide": collide_setup, "room": room_setup}
+SETUPS = {"fallingball": fallingball_setup, "jelly": jelly_setup, "collide": collide_setup, "room": room_setup,
+          "toss": toss_setup}
 fallingball = _builder(fallingball_setup, "fallingball")
 jelly = _builder(jelly_setup, "jelly")
 collide = _builder(collide_setup, "collide")
 room = _builder(room_setup, "room")
+toss = _builder(toss_setup, "toss")

@@ -24,7 +24,7 @@ D = torch.float64
 SPEC = (
     "gravity:g=0.5,-0.3,-9.8;force:b=0.4,0.8,0.3;linear_drag:c=0.6;quadratic_drag:k=0.8;"
     "ground:n=0.1,0.05,1:d=0.12:mu=0.4;ground_sticky:n=-1,0,0.02:d=-0.575;damping:eta=40;"
-    "plasticity:yield_stress=300;walls"
+    "plasticity:yield_stress=300;attractor:k=2.0:c=0.5,0.45,0.3;walls"
 )
 TIMES = (0.012, 0.03, 0.042)  # with dt = 3 ms: 14 substeps, 7 segments of 2 (outputs inside and at segment ends)
 DT = 3e-3

@@ -219,6 +219,25 @@ def test_drag_and_force_field_laws(ti64, mk):
         assert err < 0.05 * float((law - v0).norm()), f"{settings}: velocity {got.tolist()} vs law {law.tolist()}"
 
 
+def test_attractor_law(ti64, mk):
+    """A pull towards c with a = -k (x - c): the centre of mass oscillates as c + (x0 - c) cos(√k t) (the grid
+    force acts at the nodes, so the law holds for the mass-weighted centre within a few per cent of the swing)."""
+    x0 = mk.block((0.5, 0.5, 0.5), count=4)
+    store = mk.store(len(x0))
+    mk.fill(store, x0)
+    c = torch.tensor([0.4, 0.55, 0.5], dtype=torch.float64)
+    k = 20.0
+    sim = Simulator(store, SimConfig(res=16, effects=f"attractor:k={k}:c=0.4,0.55,0.5"))
+    sim.set_state(x0, torch.zeros(len(x0), 3, dtype=torch.float64))
+    fps, frames = 25.0, 10
+    centre0 = x0.mean(0)
+    t = frames / fps
+    got = sim.advance(frames, fps)["x"].mean(0)
+    law = c + (centre0 - c) * math.cos(math.sqrt(k) * t)
+    swing = float((centre0 - c).norm())
+    assert float((got - law).norm()) < 0.05 * swing, f"centre {got.tolist()} vs law {law.tolist()}"
+
+
 def _elastic_energy(F, E, nu, vol):
     mu, lam = E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
     J = torch.linalg.det(F)

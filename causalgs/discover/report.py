@@ -1,0 +1,207 @@
+"""What ``causalgs discover`` leaves for people: ``report.json``, ``report.md`` and the plots.
+
+- ``error.png``: the per-frame RMS distance between simulation and measurement before and after the repair, the fit
+  window shaded, the noise floor and the first departure marked (log scale: a repair that works drops by a factor);
+- ``residuals.png``: the residual heat on the particles over the held-out frames, before and after, seen from the
+  side and from above, on one colour scale;
+- ``paths.png``: the measured centroid path of every body against the simulated ones before and after.
+
+Every file is written atomically; the report's numbers are the ones :func:`causalgs.discover.search.discover`
+returned, nothing recomputed here.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from pathlib import Path
+
+import numpy as np
+
+from causalgs.discover.observation import Observation
+from causalgs.io import write_bytes, write_json, write_text
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> None:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    _plt().close(fig)
+    write_bytes(path, buf.getvalue())
+
+
+def _rms_curve(sim: np.ndarray, obs: Observation) -> np.ndarray:
+    return np.sqrt(((sim - obs.x[1:]) ** 2).sum(-1).mean(-1))
+
+
+def plot_error(report: dict, traj: dict, obs: Observation, path: Path) -> None:
+    plt = _plt()
+    frames = np.arange(1, len(obs.times))
+    fig, ax = plt.subplots(figsize=(7.0, 3.6))
+    ax.axvspan(0, obs.observed - 0.5, color="0.92", label="fit window")
+    ax.plot(frames, 1000 * _rms_curve(traj["before"], obs), color="tab:red", lw=1.6, label="before")
+    if report["discovered"] or report["ambiguous"]:
+        ax.plot(frames, 1000 * _rms_curve(traj["after"], obs), color="tab:blue", lw=1.6,
+                label="after: " + " + ".join(d["effect"] for d in report["discovered"] or report["ambiguous"]))
+    floor = report["disagreement"]["floor"]
+    ax.axhline(1000 * floor, color="0.4", ls=":", lw=1, label="noise floor")
+    dep = report["disagreement"].get("first_departure")
+    if dep:
+        ax.axvline(dep["frame"], color="tab:red", ls="--", lw=0.8)
+        text = f"first departure\nframe {dep['frame']}, {dep['body']}, {dep['contact']}"
+        ax.annotate(text, (dep["frame"], ax.get_ylim()[1]), xytext=(4, -4), textcoords="offset points", va="top",
+                    fontsize=8)  # fmt: skip
+    ax.set_yscale("log")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("RMS distance (mm)")
+    ax.set_title(f"simulation vs measurement — {report['verdict']}")
+    ax.legend(fontsize=8, loc="lower right")
+    ax.grid(alpha=0.3, which="both")
+    _save(fig, path)
+
+
+def plot_residuals(traj: dict, obs: Observation, path: Path) -> None:
+    """Per-particle RMS over the held-out frames (all frames after the first if nothing is held out)."""
+    plt = _plt()
+    fut = list(range(obs.observed, len(obs.times))) or list(range(1, len(obs.times)))
+    errs = {k: 1000 * np.sqrt(((traj[k][[f - 1 for f in fut]] - obs.x[fut]) ** 2).sum(-1).mean(0))
+            for k in ("before", "after")}  # fmt: skip
+    vmax = max(float(errs["before"].max()), 1e-6)
+    where = obs.x[fut[-1]]
+    fig, axes = plt.subplots(2, 2, figsize=(8.0, 6.4))
+    for col, k in enumerate(("before", "after")):
+        for row, (i, j, name) in enumerate(((0, 2, "side (x–z)"), (0, 1, "top (x–y)"))):
+            ax = axes[row, col]
+            order = np.argsort(where[:, 3 - i - j])  # far points first
+            sc = ax.scatter(where[order, i], where[order, j], c=errs[k][order], s=9, cmap="inferno", vmin=0,
+                            vmax=vmax)  # fmt: skip
+            ax.set_aspect("equal")
+            ax.set_title(f"{k}: {name}", fontsize=9)
+            ax.tick_params(labelsize=7)
+    fig.colorbar(sc, ax=axes, shrink=0.8, label="held-out RMS distance (mm)")
+    _save(fig, path)
+
+
+def plot_paths(report: dict, traj: dict, obs: Observation, path: Path) -> None:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.0, 3.8))
+    for b in range(obs.bodies):
+        sel = obs.body == b
+        meas = obs.x[:, sel].mean(1)
+        ax.plot(meas[:, 0], meas[:, 2], "k.", ms=3, label="measured" if b == 0 else None)
+        for key, colour in (("before", "tab:red"), ("after", "tab:blue")):
+            if key == "after" and not (report["discovered"] or report["ambiguous"]):
+                continue
+            s = np.concatenate([obs.x[:1, sel], traj[key][:, sel]]).mean(1)
+            ax.plot(s[:, 0], s[:, 2], color=colour, lw=1.2, label=key if b == 0 else None)
+        ax.plot(*meas[obs.observed - 1, [0, 2]], "o", mfc="none", mec="k", ms=7,
+                label="end of fit window" if b == 0 else None)  # fmt: skip
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("z (m)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title("centroid paths")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    _save(fig, path)
+
+
+def _mm(v: float | None) -> str:
+    return "n/a" if v is None or not math.isfinite(v) else f"{1000 * v:.2f} mm"
+
+
+def markdown(report: dict) -> str:
+    """The report for people: verdict first, then the law with its interval, the evidence, the runners-up, the base
+    parameters before and after, and the errors."""
+    L = [f"# Discovery report: {report['verdict']}", ""]
+    src = report.get("source")
+    if src:
+        L += [f"Source: `{src}`", ""]
+    eb, ea = report["error_before"], report["error_after"]
+    drop = 1 - ea["future_rms_m"] / eb["future_rms_m"] if eb["future_rms_m"] > 0 else 0.0
+    if report["discovered"]:
+        L.append("## Found")
+        for d in report["discovered"]:
+            L += [f"- **{d['law']}**", f"  - evidence: residual signature `{d['evidence']['signature']}` "
+                  f"({_pct(d['evidence'].get('signature_share'))} of the residual acceleration); held-out RMS "
+                  f"−{100 * (1 - math.sqrt(max(0.0, 1 - d['evidence']['future_drop']))):.0f}%; "
+                  f"ΔBIC {d['evidence']['delta_bic']:+.1f}; "
+                  + ", ".join(f"{p} at {z:.1f} SE" for p, z in d["evidence"]["z"].items())]  # fmt: skip
+        L.append("")
+    elif report["ambiguous"]:
+        L += ["## Ambiguous: the data does not separate these", ""]
+        L += [f"- {a['law']} (held-out MSE {a['future_mse_cm2']:.3g} cm²)" for a in report["ambiguous"]]
+        L.append("")
+    elif report["verdict"] == "unexplained discrepancy":
+        L += ["## Something is missing that the catalogue does not name", "",
+              f"A free residual force explains {_pct(report['disagreement']['residual_force_gain'])} of the residual "
+              "acceleration, but no candidate passed the gate.", ""]  # fmt: skip
+    else:
+        L += ["## No missing effect", "", "The base model reaches the measurement's noise floor, or no candidate "
+              "improves the held-out frames enough to pass the gate.", ""]  # fmt: skip
+    L += ["## Errors (RMS distance per point)", "", "| | fit window | held-out future |", "|---|---|---|",
+          f"| before | {_mm(eb['fit_rms_m'])} | {_mm(eb['future_rms_m'])} |",
+          f"| after | {_mm(ea['fit_rms_m'])} | {_mm(ea['future_rms_m'])} |", "",
+          f"Held-out error change: {-100 * drop:+.0f}%. Noise per coordinate: {_mm(report['noise'])}.", ""]  # fmt: skip
+    dis = report["disagreement"]
+    dep = dis.get("first_departure")
+    L.append("## Where and when the base model departs")
+    if dep:
+        L.append(f"- first departure: frame {dep['frame']} (t = {dep['time']:.3f} s), body **{dep['body']}**, "
+                 f"{dep['contact']}, around ({', '.join(f'{c:.3f}' for c in dep['centroid'])}) m")  # fmt: skip
+    else:
+        L.append("- the error never rises above three times the noise floor")
+    bc = dis.get("by_contact", {})
+    L.append("- RMS by contact state: " + ", ".join(f"{k} {_mm(v)}" for k, v in bc.items()))
+    sig = dis.get("signatures", {})
+    if sig:
+        L.append("- residual acceleration explained by each driver: "
+                 + ", ".join(f"`{k}` {_pct(v)}" for k, v in sorted(sig.items(), key=lambda kv: -kv[1])))  # fmt: skip
+    L.append("")
+    for i, rnd in enumerate(report["rounds"]):
+        L += [f"## Round {i + 1}", "", "| candidate | screen gain | refit held-out MSE (cm²) | passed | why not |",
+              "|---|---|---|---|---|"]  # fmt: skip
+        refits = {r["effect"]: r for r in rnd["refits"]}
+        for s in rnd["screen"]:
+            r = refits.get(s["effect"])
+            if r is None:
+                L.append(f"| {s['effect']} | {s['gain']:.3f} | not refitted | | |")
+            elif "error" in r:
+                L.append(f"| {s['effect']} | {s['gain']:.3f} | failed: {r['error']} | no | |")
+            else:
+                L.append(f"| {s['effect']} | {s['gain']:.3f} | {r['future_mse_cm2']:.3g} | "
+                         f"{'yes' if r['passed'] else 'no'} | {'; '.join(r['reasons'])} |")  # fmt: skip
+        L.append("")
+    if report["discovered"]:
+        d0 = report["discovered"][0]
+        L += ["## Base parameters before and after (the missing effect biases them)", "",
+              "| parameter | before | after |", "|---|---|---|"]  # fmt: skip
+        after = report["discovered"][-1]["base_after"]
+        L += [f"| {k} | {v:.4g} | {after.get(k, float('nan')):.4g} |" for k, v in d0["base_before"].items()]
+        L.append("")
+        L += [f"Repaired model's effects: `{report['final_spec']}`", ""]
+    L += ["Plots: `error.png` (error per frame), `residuals.png` (held-out residual heat), `paths.png` (centroids).",
+          "", f"Took {report['seconds']:.0f} s."]  # fmt: skip
+    return "\n".join(L) + "\n"
+
+
+def _pct(v) -> str:
+    return "n/a" if v is None else f"{100 * v:.0f}%"
+
+
+def write_outputs(out, report: dict, traj: dict, obs: Observation) -> None:
+    """``report.json``, ``report.md`` and the three plots in ``out``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "report.json", report)
+    write_text(out / "report.md", markdown(report))
+    plot_error(report, traj, obs, out / "error.png")
+    plot_residuals(traj, obs, out / "residuals.png")
+    plot_paths(report, traj, obs, out / "paths.png")

@@ -1,0 +1,67 @@
+"""One discovery run, as ``causalgs discover`` does it: read the measurement, run the loop, write the outputs.
+
+The measurement is an observation file (:meth:`~causalgs.discover.observation.Observation.save`: trajectories of
+material points, for example from a simulated scene or a tracker). The model's effects and the effect parameters
+calibrated with the base are given as a spec (the physics a fitted run was trained with, or what the user believes).
+Everything a person needs to redo the run is saved next to the report as ``discover.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from causalgs.discover.observation import Observation, load_observation
+from causalgs.discover.report import write_outputs
+from causalgs.discover.search import DiscoverConfig, discover
+from causalgs.errors import CausalGSError
+from causalgs.io import write_json
+from causalgs.sim.effects import Effects
+
+DEFAULT_SPEC = "gravity;ground:mu=0.3;walls"
+DEFAULT_LEARN = ("ground.mu",)
+
+
+def load_source(source) -> tuple[Observation, dict]:
+    """The observation at ``source`` and the base model it implies: an ``.npz`` observation file (no base: the
+    defaults), or a fitted run folder (:func:`causalgs.discover.video.observation_from_run`: the run's physics).
+    Anything else is a one-line error."""
+    source = Path(source)
+    if source.is_dir():
+        if not (source / "config.toml").is_file() or not (source / "checkpoint.pt").is_file():
+            raise CausalGSError(f"{source}: a folder but not a fitted run (no config.toml / checkpoint.pt); give a "
+                                "run folder or an observation file (.npz)")  # fmt: skip
+        from causalgs.discover.video import observation_from_run
+
+        return observation_from_run(source)
+    return load_observation(source), {}
+
+
+def run_discovery(source, out, *, spec: str | None = None, learn=None, candidates=None,
+                  config: DiscoverConfig | None = None, log=None, obs: Observation | None = None) -> dict:  # fmt: skip
+    """Discover on ``source`` (or the given ``obs``) with the base model ``spec``/``learn`` (None: the run's own
+    physics for a run folder, else :data:`DEFAULT_SPEC` / :data:`DEFAULT_LEARN`); writes ``report.json``,
+    ``report.md``, the plots and ``discover.json`` (the options) into ``out`` and returns the report."""
+    cfg = config or DiscoverConfig()
+    if spec is not None:
+        Effects.from_spec(spec)  # a malformed spec is a one-line error before any work
+    base: dict = {}
+    if obs is None:
+        obs, base = load_source(source)
+    spec = spec if spec is not None else base.get("spec", DEFAULT_SPEC)
+    learn = tuple(learn) if learn is not None else tuple(base.get("learn", DEFAULT_LEARN))
+    if cfg.res <= 0:  # the run's grid, else the default
+        cfg = dataclasses.replace(cfg, res=int(base.get("res", DiscoverConfig.res)))
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    options = {"source": str(source), "spec": spec, "learn": list(learn),
+               "candidates": None if candidates is None else list(candidates),
+               "config": dataclasses.asdict(cfg)}  # fmt: skip
+    write_json(out / "discover.json", options)
+    report, traj = discover(obs, spec, learn, candidates=candidates, config=cfg, log=log)
+    report["source"] = str(source)
+    report["config"] = options
+    if obs.truth is not None:
+        report["truth"] = obs.truth
+    write_outputs(out, report, traj, obs)
+    return report
