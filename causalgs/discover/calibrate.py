@@ -46,10 +46,16 @@ def fit_frames(model: PhysicsModel) -> list[int]:
 
 
 def calibrate(model: PhysicsModel, theta0: torch.Tensor, frames=None, *, iterations: int = 25,
-              free=None) -> Fit:  # fmt: skip
+              free=None, warm: float = 0.0) -> Fit:  # fmt: skip
     """L-BFGS from ``theta0`` on ``frames`` (default: the fit window). ``free``: indices of θ to fit (default all);
-    the rest stay at ``theta0``."""
+    the rest stay at ``theta0``. ``warm`` > 0: first fit the leading ``warm`` fraction of the frames (half the
+    iterations), then all of them: a short horizon is nearly convex in the throw and the forces, so the long one
+    starts in the right basin rather than where parameters compensate for one another (a friction that mimics a
+    forward push, a throw that mimics drag)."""
     frames = fit_frames(model) if frames is None else list(frames)
+    if warm > 0 and len(frames) >= 6:
+        head = frames[: max(3, round(warm * len(frames)))]
+        theta0 = calibrate(model, theta0, head, iterations=max(5, iterations // 2), free=free).theta
     mask = torch.zeros(len(theta0), dtype=torch.bool)
     mask[list(range(len(theta0))) if free is None else list(free)] = True
     fixed = theta0.detach().clone()

@@ -70,6 +70,7 @@ CASES: tuple[Case, ...] = (
     Case("control: stiffness ×2", "control", BASE, BASE, expect="none", stiffness_start=2.0),
     Case("outside: attractor", "outside", BASE + ";attractor:k=3.0:c=0.0,0.0,0.3", BASE, expect="unexplained"),
 )  # fmt: skip
+BY_NAME = {c.name: c for c in CASES}
 
 
 @dataclass
@@ -164,8 +165,8 @@ def run_table(out, cfg: TableConfig | None = None, log=None) -> list[dict]:
                 log(f"  -> failed: {e}")
                 rows.append({"case": case.name, "kind": case.kind, "expected": case.expect, "seed": seed,
                              "verdict": f"failed: {e}", "found": [], "first_ok": False, "in_set": False,
-                             "param_error": None, "future_rms_before_m": float("nan"),
-                             "future_rms_after_m": float("nan"), "future_drop": 0.0,
+                             "param_error": None, "future_rms_before_m": None, "future_rms_after_m": None,
+                             "future_drop": 0.0,
                              "seconds": time.monotonic() - t0})  # fmt: skip
                 _write(out, rows, cfg)
                 continue
@@ -209,9 +210,13 @@ def markdown(rows: list[dict]) -> str:
     for r in rows:
         pe = "—" if r["param_error"] is None else f"{100 * r['param_error']:.1f}%"
         mark = "✓" if r["first_ok"] else "✗"
+        if r["future_rms_before_m"] is None:
+            err = "—"
+        else:
+            err = (f"{1000 * r['future_rms_before_m']:.1f} → {1000 * r['future_rms_after_m']:.1f} mm "
+                   f"({-100 * r['future_drop']:+.0f}%)")  # fmt: skip
         L.append(f"| {r['case']} | {r['seed']} | {mark} {r['verdict']} | {', '.join(r['found']) or '—'} | {pe} | "
-                 f"{1000 * r['future_rms_before_m']:.1f} → {1000 * r['future_rms_after_m']:.1f} mm "
-                 f"({-100 * r['future_drop']:+.0f}%) | {r['seconds']:.0f} s |")  # fmt: skip
+                 f"{err} | {r['seconds']:.0f} s |")  # fmt: skip
     s = summary(rows)
     L += ["", "| goal | reached |", "|---|---|"]
     for k, v in s.items():

@@ -118,3 +118,64 @@ def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_
         lines = r.output.strip().splitlines()
         assert r.exit_code != 0 and len(lines) == 1 and msg in lines[0], (argv, r.output)
         assert "Traceback" not in r.output
+
+
+def _fake_report(effect: str | None, value: float = 0.0, verdict: str | None = None) -> dict:
+    found = [{"effect": effect, "params": {"linear_drag.c": value}}] if effect else []
+    return {"verdict": verdict or ("discovered" if effect else "no missing effect"), "discovered": found,
+            "ambiguous": [], "error_before": {"future_rms_m": 0.01, "fit_rms_m": 0.004},
+            "error_after": {"future_rms_m": 0.004 if effect else 0.01, "fit_rms_m": 0.003}, "seconds": 1.0,
+            "noise": 0.002, "rounds": [], "final_spec": "gravity;walls",
+            "disagreement": {"floor": 0.003, "first_departure": None, "by_contact": {}, "signatures": {},
+                             "residual_force_gain": 0.0}}  # fmt: skip
+
+
+def test_table_rows_score_what_was_found_against_what_was_hidden():
+    from causalgs.discover.table import BY_NAME, summary
+    from causalgs.discover.table import score as score_row
+
+    drag = BY_NAME["linear_drag"]
+    row = score_row(drag, _fake_report("linear_drag", 0.63))
+    assert row["first_ok"] and row["in_set"] and math.isclose(row["param_error"], 0.05)
+    assert math.isclose(row["future_drop"], 0.6)
+    wrong = score_row(drag, _fake_report("quadratic_drag"))
+    assert not wrong["first_ok"] and wrong["param_error"] is None
+    control = BY_NAME["control: clean"]
+    assert score_row(control, _fake_report(None))["first_ok"]
+    assert not score_row(control, _fake_report("linear_drag", 0.1))["first_ok"]
+    outside = BY_NAME["outside: attractor"]
+    assert score_row(outside, _fake_report(None, verdict="unexplained discrepancy"))["first_ok"]
+    rows = [{**row, "seed": 0}, {**wrong, "seed": 1}, {**score_row(control, _fake_report(None)), "seed": 0}]
+    s = summary(rows)
+    assert s["hidden_first"] == 0.5 and s["controls_no_effect"] == 1.0 and s["param_within_10pct"] == 1.0
+
+
+def test_table_resumes_and_records_failures(tmp_path, monkeypatch):
+    import causalgs.discover.table as T
+    from causalgs.errors import CausalGSError
+
+    calls = []
+
+    def fake_discover(obs, spec, learn, config=None, log=None, start=None):
+        calls.append(spec)
+        if "attractor" in obs.truth["scene_spec"]:
+            raise CausalGSError("the simulation blew up at frame 3")
+        return _fake_report(None), {"before": obs.x[1:], "after": obs.x[1:]}
+
+    def fake_observe(case, seed, cfg):
+        obs = _throw(0.0)
+        obs.truth = {"scene_spec": case.scene, "bodies": [{"E": 3e4, "velocity": [0.6, 0, 1.4], "omega": [0, 0, 0]}]}
+        return obs
+
+    monkeypatch.setattr(T, "discover", fake_discover)
+    monkeypatch.setattr(T, "observe", fake_observe)
+    cfg = T.TableConfig(only=("control", "outside"))
+    rows = T.run_table(tmp_path, cfg)
+    assert len(rows) == 6 and len(calls) == 6
+    failed = [r for r in rows if r["verdict"].startswith("failed")]
+    assert len(failed) == 1 and "blew up" in failed[0]["verdict"]
+    assert (tmp_path / "table.md").is_file() and (tmp_path / "control-clean-s0" / "report.md").is_file()
+    again = T.run_table(tmp_path, cfg)  # every row is there: nothing runs again
+    assert len(again) == 6 and len(calls) == 6
+    saved = json.loads((tmp_path / "table.json").read_text())
+    assert saved["summary"]["controls_no_effect"] == 1.0 and saved["summary"]["runs"] == 6

@@ -374,3 +374,32 @@ def test_pattern_velocity_is_a_blend_of_rigid_twists(fitted):
     one = torch.zeros(K, 6, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda t: m.pattern_velocity(t, x), (one,))
 
+
+
+def test_discovery_reads_a_fitted_run(fitted, tmp_path):
+    """`causalgs discover RUN`: the measurement is the run's tracked particle motion over the observed window (the
+    last quarter held out), the base model is the run's physics at its learned values; the report is written."""
+    from causalgs.discover.video import observation_from_run
+    from causalgs.model.fit import load_model
+    from cli.main import cli
+
+    obs, base = observation_from_run(fitted)
+    m, _, tl = load_model(fitted)
+    n = tl.train_frames
+    assert obs.x.shape == (n, len(m.particles), 3) and obs.observed == n - round(0.25 * n)
+    assert np.isclose(obs.vol.sum(), float(m.particles.vol.sum()), rtol=1e-6)
+    with torch.no_grad():
+        x0 = m.particles.x0.to(m.fields.centres.dtype)
+        track, _ = m.trajectories(m.mixtures(x0), x0, None, n - 1, [n - 1])
+    assert np.allclose(obs.x[-1], track[0].double().numpy(), atol=1e-6)
+    assert base["res"] == m.config.physics.res and base["learn"] == tuple(m.config.physics.learn)
+    assert f"d={float(m.effect_params[m.simulator().effects.param_names().index('ground.d')])!r}" in base["spec"]
+    small, _ = observation_from_run(fitted, max_points=50)
+    assert small.points < obs.points and np.isclose(small.vol.sum(), obs.vol.sum(), rtol=1e-6)
+    out = tmp_path / "discover"
+    r = CliRunner().invoke(cli, ["discover", str(fitted), "--out", str(out), "--candidates", "force",
+                                 "--starts", "3e4", "--iterations", "3", "--max-effects", "1", "--json"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    rep = json.loads(r.output)
+    assert rep["verdict"] in ("discovered", "no missing effect", "unexplained discrepancy")
+    assert rep["config"]["spec"] == base["spec"] and (out / "report.md").is_file() and (out / "error.png").is_file()
