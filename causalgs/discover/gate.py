@@ -10,7 +10,9 @@ A refit candidate is accepted only if all of these hold (``../shared/DISCOVERY.m
    moving-block bootstrap over frames of the linearised refit (naive Gauss–Newton errors assume independent
    residuals and come out far too small);
 4. the refit reaches the floor: its fit-window RMS is within ``floor_factor`` (1.1×) of the best any model
-   reached on this data, and below the base's; otherwise the verdict is "not converged" for that candidate.
+   reached on this data, below the base's, and within ``noise_factor`` (1.25×) of the noise floor measured from
+   the data (:func:`causalgs.discover.residuals.rigid_floor`); otherwise the candidate explains only part of the
+   discrepancy ("not converged", or an effect the catalogue does not name).
 
 Intervals are the bootstrap's 2.5–97.5% percentiles around the fitted value.
 """
@@ -28,6 +30,7 @@ class GateConfig:
     future_drop: float = 0.15
     sigmas: float = 3.0
     floor_factor: float = 1.1
+    noise_factor: float = 1.25
     clusters_per_body: int = 4
     block: int = 4  # frames per bootstrap block
     resamples: int = 400
@@ -69,17 +72,21 @@ class Verdict:
 
 
 def judge(*, base_train: float, base_future: float, train: float, future: float, best_train: float,
-          k_new: int, n_eff: int, k_base: int, z: dict, cfg: GateConfig) -> Verdict:  # fmt: skip
+          k_new: int, n_eff: int, k_base: int, z: dict, cfg: GateConfig,
+          noise: float | None = None) -> Verdict:  # fmt: skip
     """Apply the four checks of the module docstring. ``*_train``/``*_future``: mean squared errors (one unit);
-    ``z``: new parameter → |value − off| / standard error."""
+    ``z``: new parameter → |value − off| / standard error; ``noise``: the noise floor as a mean squared error in
+    the same unit (None: not checked)."""
     drop = 1.0 - future / max(base_future, 1e-300)
     d_bic = bic(train, n_eff, k_base + k_new) - bic(base_train, n_eff, k_base)
     floor_ok = train <= (cfg.floor_factor**2) * best_train and train < base_train
+    noise_ok = noise is None or train <= (cfg.noise_factor**2) * noise
     checks = {
         "future_drop": drop,
         "delta_bic": d_bic,
         "z": z,
         "train_rms_ratio_to_best": math.sqrt(train / max(best_train, 1e-300)),
+        "train_rms_ratio_to_noise": None if noise is None else math.sqrt(train / max(noise, 1e-300)),
     }
     reasons = []
     if drop < cfg.future_drop:
@@ -91,4 +98,6 @@ def judge(*, base_train: float, base_future: float, train: float, future: float,
         reasons.append(f"not significant: {', '.join(f'{p} ({z[p]:.1f} SE)' for p in weak)}")
     if not floor_ok:
         reasons.append("the refit does not reach the floor (not converged)")
+    elif not noise_ok:
+        reasons.append(f"the refit stays {math.sqrt(train / noise):.2f}× above the noise floor (explains only part)")
     return Verdict(not reasons, checks, reasons)

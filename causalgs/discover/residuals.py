@@ -33,10 +33,16 @@ def point_errors(sim: np.ndarray, obs: Observation, frames) -> np.ndarray:
 
 
 def contact(obs: Observation, band: float) -> np.ndarray:
-    """[T, P] bool: the point is within ``band`` of the ground plane (False everywhere without a ground)."""
+    """[T, P] bool: the point's body touches the ground at that frame (its lowest points within ``band`` of the
+    plane; a body slides or rests as a whole, so its top is "in contact" too). False everywhere without a ground."""
     if obs.ground is None:
         return np.zeros(obs.x.shape[:2], dtype=bool)
-    return obs.x[..., 2] - obs.ground < band
+    out = np.zeros(obs.x.shape[:2], dtype=bool)
+    for b in range(obs.bodies):
+        sel = obs.body == b
+        low = np.quantile(obs.x[:, sel, 2], 0.05, axis=1) - obs.ground  # robust to a few noisy points
+        out[:, sel] = (low < band)[:, None]
+    return out
 
 
 def first_departure(curve: np.ndarray, frames, floor: float, factor: float = 3.0, hold: int = 2) -> int | None:
@@ -86,43 +92,82 @@ def residual_accelerations(sim: np.ndarray, obs: Observation, frames, window: in
 
 
 def drivers(obs: Observation, frames, band: float, window: int = 7) -> dict[str, np.ndarray]:
-    """What each candidate's residual acceleration is proportional to, [F, P, 3] per driver, from the measured
-    (smoothed) motion: ``const`` (a uniform field, one column per axis), ``v`` (linear drag), ``vv`` (|v|·v,
-    quadratic drag), ``contact`` (the tangential velocity of points touching the ground: friction), ``internal``
-    (velocity relative to the body's mean: material damping acts on internal motion only)."""
+    """What each candidate's residual acceleration is proportional to, from the measured (smoothed) motion:
+    per body centroid [F, B, 3] — ``v`` (linear drag), ``vv`` (|v|·v, quadratic drag), ``contact`` (the tangential
+    velocity while the body touches the ground: friction) — and per point [F, P, 3] ``internal`` (velocity relative
+    to the body's mean: material damping acts on internal motion only). ``const`` (a uniform field) needs none."""
     frames = list(frames)
     dt = float(np.median(np.diff(obs.times)))
     v, _ = derivatives(obs.x[frames], dt, window)
-    out = {"v": v, "vv": np.linalg.norm(v, axis=-1, keepdims=True) * v}
-    touch = contact(obs, band)[frames][..., None]
-    vt = v.copy()
+    vc = _centroids(v, obs)
+    out = {"v": vc, "vv": np.linalg.norm(vc, axis=-1, keepdims=True) * vc}
+    touch = contact(obs, band)[frames]
+    tc = np.stack([touch[:, obs.body == b].any(1) for b in range(obs.bodies)], axis=1)[..., None]
+    vt = vc.copy()
     vt[..., 2] = 0.0
-    out["contact"] = touch * vt
-    internal = np.empty_like(v)
-    for b in range(obs.bodies):
-        sel = obs.body == b
-        internal[:, sel] = v[:, sel] - v[:, sel].mean(1, keepdims=True)
-    out["internal"] = internal
+    out["contact"] = tc * vt
+    out["internal"] = v - vc[:, obs.body]
     return out
 
 
-def signatures(a_res: np.ndarray, drv: dict[str, np.ndarray], body: np.ndarray) -> dict[str, float]:
-    """Fraction of the residual acceleration's variance (over all points) that each driver explains, with one
-    coefficient per body (``const``: one constant vector per body)."""
+def _centroids(a: np.ndarray, obs: Observation) -> np.ndarray:
+    """[F, P, 3] → [F, B, 3], the mean over each body's points."""
+    return np.stack([a[:, obs.body == b].mean(1) for b in range(obs.bodies)], axis=1)
+
+
+def signatures(a_res: np.ndarray, drv: dict[str, np.ndarray], obs: Observation) -> dict[str, float]:
+    """How much of the residual acceleration each driver explains with one coefficient per body (``const``: one
+    constant vector per body): for the body drivers, the fraction of the variance of the bodies' *centroid*
+    residual accelerations (averaging over a body's points removes most of the measurement noise, which a second
+    derivative amplifies); for ``internal``, the fraction of the residual relative to the centroid."""
+    ac = _centroids(a_res, obs)
+    rel = a_res - ac[:, obs.body]
     out = {}
-    total = float((a_res**2).sum())
-    if total <= 0:
-        return {k: 0.0 for k in [*drv, "const"]}
-    for name in [*drv, "const"]:
+    for name in [*[k for k in drv if k != "internal"], "const", "internal"]:
+        r_all, d_all = (rel, drv.get("internal")) if name == "internal" else (ac, drv.get(name))
+        total = float((r_all**2).sum())
         explained = 0.0
-        for b in np.unique(body):
-            r = a_res[:, body == b].reshape(-1, 3)
+        for b in range(obs.bodies):
+            sel = (obs.body == b) if name == "internal" else np.array([b])
+            r = r_all[:, sel].reshape(-1, 3)
             if name == "const":
                 explained += float((r.mean(0) ** 2).sum() * len(r))
                 continue
-            d = drv[name][:, body == b].reshape(-1, 3)
+            d = d_all[:, sel].reshape(-1, 3)
             den = float((d * d).sum())
             if den > 0:
                 explained += float((r * d).sum()) ** 2 / den
-        out[name] = explained / total
+        out[name] = explained / total if total > 0 else 0.0
     return out
+
+
+def rigid_floor(sim: np.ndarray, obs: Observation, frames) -> float:
+    """Per-coordinate RMS (m) of what is left of the residual (measured − simulated, [F, P, 3] at ``frames``) once
+    every body's best rigid motion is removed frame by frame (a translation and a small rotation, least squares).
+
+    The part of a residual that no better dynamics of nearly rigid bodies could remove: measurement noise and the
+    noise of the reconstructed rest shape (each point's start offset), which are independent from point to point.
+    A missing force, drag or friction moves a body as a whole and is removed with the rigid part, so this is the
+    floor a correct model reaches, estimated from the data and the base fit alone."""
+    frames = list(frames)
+    r = obs.x[frames] - sim
+    left, count = 0.0, 0
+    for b in range(obs.bodies):
+        sel = obs.body == b
+        p = obs.x[frames][:, sel]
+        q = p - p.mean(1, keepdims=True)
+        for k in range(len(frames)):
+            rk = r[k, sel]
+            A = np.zeros((len(rk), 3, 6))
+            A[:, :, :3] = np.eye(3)
+            x, y, z = q[k, :, 0], q[k, :, 1], q[k, :, 2]
+            A[:, 0, 4], A[:, 0, 5] = z, -y  # ω × q
+            A[:, 1, 3], A[:, 1, 5] = -z, x
+            A[:, 2, 3], A[:, 2, 4] = y, -x
+            A = A.reshape(-1, 6)
+            sol, *_ = np.linalg.lstsq(A, rk.reshape(-1), rcond=None)
+            e = rk.reshape(-1) - A @ sol
+            left += float(e @ e)
+            count += max(len(e) - 6, 1)
+    return float(np.sqrt(left / max(count, 1)))
+

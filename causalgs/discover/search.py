@@ -43,6 +43,7 @@ class DiscoverConfig:
     ambiguity_bic: float = 10.0  # ΔBIC within which two passing candidates are not separated
     ambiguity_future: float = 0.15  # relative held-out error within which two passing candidates tie
     unexplained_gain: float = 0.5  # residual-force variance explained above which a discrepancy is "unexplained"
+    unexplained_floor: float = 1.5  # ... when the base also stays this many times above the noise floor
     gate: GateConfig = field(default_factory=GateConfig)
 
 
@@ -70,17 +71,17 @@ def _state(model: PhysicsModel, fit: Fit) -> State:
 
 
 def residual_force_gain(sim: np.ndarray, obs: Observation, frames, blocks: int = 4) -> float:
-    """Fraction of the residual accelerations' variance that a free force explains: one constant acceleration per
-    body and per time block (a deliberately flexible, unnamed correction)."""
+    """Fraction of the variance of the bodies' centroid residual accelerations that a free force explains: one
+    constant acceleration per body and per time block (a deliberately flexible, unnamed correction)."""
     a = R.residual_accelerations(sim, obs, frames)
-    total = float((a**2).sum())
+    ac = np.stack([a[:, obs.body == b].mean(1) for b in range(obs.bodies)], axis=1)  # [F, B, 3]
+    total = float((ac**2).sum())
     if total <= 0:
         return 0.0
     explained = 0.0
     for chunk in np.array_split(np.arange(len(frames)), blocks):
-        for b in range(obs.bodies):
-            r = a[chunk][:, obs.body == b].reshape(-1, 3)
-            explained += float((r.mean(0) ** 2).sum() * len(r))
+        r = ac[chunk]
+        explained += float((r.mean(0) ** 2).sum() * len(r))
     return explained / total
 
 
@@ -108,7 +109,7 @@ def _disagreement(state: State, obs: Observation, floor: float) -> dict:
     fr = fit_frames(state.model)
     a = R.residual_accelerations(state.sim[[f - 1 for f in fr]], obs, fr)
     drv = R.drivers(obs, fr, dx)
-    out["signatures"] = R.signatures(a, drv, obs.body)
+    out["signatures"] = R.signatures(a, drv, obs)
     out["residual_force_gain"] = residual_force_gain(state.sim[[f - 1 for f in fr]], obs, fr)
     return out
 
@@ -204,7 +205,12 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         "base": {"spec": spec, "learn": list(learn), "values": base_model.values(base.fit.theta),
                  "starts": {f"{f.start:.3g}": f.loss for f in fits}},
     }
-    floor = max(math.sqrt(3) * sigma, math.sqrt(base.train) * UNIT / 4)
+    fr0 = fit_frames(base_model)
+    # The floor a correct model reaches (per coordinate): the part of the base's residual that no rigid motion of
+    # the bodies removes (noise, a noisy rest shape), never below the measurement noise itself.
+    floor_coord = max(R.rigid_floor(base.sim[[f - 1 for f in fr0]], obs, fr0), sigma)
+    report["floor_rms_m"] = floor_coord
+    floor = math.sqrt(3) * floor_coord  # per point (3D), for the error curves
     report["disagreement"] = _disagreement(base, obs, floor)
     pool = [c for c in select(candidates) if c.applies(base_model.effects, base_model.learn)]
     current = base
@@ -238,7 +244,8 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
                 z = {}
             v = judge(base_train=current.train, base_future=current.future, train=st.train, future=st.future,
                       best_train=best_train, k_new=len(c.params), n_eff=n_eff,
-                      k_base=len(current.model.knobs), z=z, cfg=cfg.gate)  # fmt: skip
+                      k_base=len(current.model.knobs), z=z, cfg=cfg.gate,
+                      noise=(floor_coord / UNIT) ** 2)  # fmt: skip
             res = {"effect": c.key, "train_mse_cm2": st.train, "future_mse_cm2": st.future, "passed": v.passed,
                    "checks": v.checks, "reasons": v.reasons, "params": unc,
                    "values": st.model.values(st.fit.theta)}  # fmt: skip
@@ -294,7 +301,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
     elif report["discovered"]:
         report["verdict"] = "discovered"
     elif (report["disagreement"]["residual_force_gain"] >= cfg.unexplained_gain
-          and math.sqrt(base.train) * UNIT > 2 * floor):  # fmt: skip
+          and math.sqrt(base.train) * UNIT > cfg.unexplained_floor * floor_coord):  # fmt: skip
         report["verdict"] = "unexplained discrepancy"
     else:
         report["verdict"] = "no missing effect"
