@@ -150,6 +150,11 @@ def markdown(report: dict) -> str:
           f"| before | {_mm(eb['fit_rms_m'])} | {_mm(eb['future_rms_m'])} |",
           f"| after | {_mm(ea['fit_rms_m'])} | {_mm(ea['future_rms_m'])} |", "",
           f"Held-out error change: {-100 * drop:+.0f}%. Noise per coordinate: {_mm(report['noise'])}.", ""]  # fmt: skip
+    im = report.get("images")
+    if im:
+        L += [f"On images discovery never fitted ({im['images']} views of held-out cameras at frames "
+              f"{im['frames'][0]}–{im['frames'][-1]}): PSNR {im['psnr_before']:.2f} dB before, "
+              f"{im['psnr_after']:.2f} dB after (`images.png`: {im['panel']}).", ""]  # fmt: skip
     dis = report["disagreement"]
     dep = dis.get("first_departure")
     L.append("## Where and when the base model departs")

@@ -63,5 +63,11 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
     report["config"] = options
     if obs.truth is not None:
         report["truth"] = obs.truth
+    if "run" in base:  # a fitted run: the disagreement on images of held-out cameras, before and after
+        from causalgs.discover.video import image_residuals
+
+        if log:
+            log("rendering the held-out views before and after")
+        report["images"] = image_residuals(base["run"], obs, traj, out / "images.png")
     write_outputs(out, report, traj, obs)
     return report

@@ -403,3 +403,6 @@ def test_discovery_reads_a_fitted_run(fitted, tmp_path):
     rep = json.loads(r.output)
     assert rep["verdict"] in ("discovered", "no missing effect", "unexplained discrepancy")
     assert rep["config"]["spec"] == base["spec"] and (out / "report.md").is_file() and (out / "error.png").is_file()
+    im = rep["images"]  # held-out cameras at held-out frames, rendered before and after
+    assert im is not None and im["images"] >= 1 and np.isfinite(im["psnr_before"]) and (out / "images.png").is_file()
+    assert min(im["frames"]) >= obs.observed
