@@ -91,7 +91,9 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     report = run_discovery(source, out, spec=spec, learn=_names(learn, "--learn"), candidates=cands,
                            config=cfg, log=None if as_json else _console_log())  # fmt: skip
     if as_json:
-        click.echo(json.dumps(report, indent=2))
+        from causalgs.discover.report import finite
+
+        click.echo(json.dumps(finite(report), indent=2))
         return
     click.echo(f"verdict: {report['verdict']}")
     for d in report["discovered"]:

@@ -201,11 +201,26 @@ def _pct(v) -> str:
     return "n/a" if v is None else f"{100 * v:.0f}%"
 
 
+def finite(obj):
+    """``obj`` with every non-finite float replaced by None (JSON has no inf or NaN)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return finite(obj.item())
+    if isinstance(obj, np.ndarray):
+        return finite(obj.tolist())
+    return obj
+
+
 def write_outputs(out, report: dict, traj: dict, obs: Observation) -> None:
     """``report.json``, ``report.md`` and the three plots in ``out``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "report.json", report)
+    write_json(out / "report.json", finite(report))
     write_text(out / "report.md", markdown(report))
     plot_error(report, traj, obs, out / "error.png")
     plot_residuals(traj, obs, out / "residuals.png")

@@ -160,7 +160,9 @@ def _uncertainty(state: State, params, cfg: DiscoverConfig) -> dict:
         off = 0.0 if knob.lower is not None or knob.offset == 0.0 else knob.offset
         lo, hi = np.percentile(samples, [2.5, 97.5])
         out[p] = {"value": vals[p], "se": se, "interval": [float(lo), float(hi)],
-                  "z": abs(vals[p] - off) / se if se > 0 else math.inf}  # fmt: skip
+                  # No spread at all means the data does not move the parameter (no sensitivity, or pinned at a
+                  # bound): nothing is known about it, so it is not significant.
+                  "z": abs(vals[p] - off) / se if se > 0 else 0.0}  # fmt: skip
     return out
 
 

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from causalgs.discover.observation import Observation, synthesize
+from causalgs.discover.report import finite
 from causalgs.discover.search import DiscoverConfig, discover
 from causalgs.errors import CausalGSError
 from causalgs.io import write_json, write_text
@@ -227,7 +228,7 @@ def markdown(rows: list[dict]) -> str:
 
 def _write(out: Path, rows: list[dict], cfg: TableConfig) -> None:
     rows = sorted(rows, key=lambda r: ([c.name for c in CASES].index(r["case"]), r["seed"]))
-    write_json(out / "table.json", {"rows": rows, "summary": summary(rows), "config": _cfg_dict(cfg)})
+    write_json(out / "table.json", finite({"rows": rows, "summary": summary(rows), "config": _cfg_dict(cfg)}))
     write_text(out / "table.md", markdown(rows))
 
 

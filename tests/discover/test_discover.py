@@ -179,3 +179,11 @@ def test_table_resumes_and_records_failures(tmp_path, monkeypatch):
     assert len(again) == 6 and len(calls) == 6
     saved = json.loads((tmp_path / "table.json").read_text())
     assert saved["summary"]["controls_no_effect"] == 1.0 and saved["summary"]["runs"] == 6
+
+
+def test_reports_hold_only_json_numbers():
+    from causalgs.discover.report import finite
+
+    out = finite({"z": math.inf, "v": [1.0, float("nan"), np.float64(2.0)], "a": np.array([np.inf, 3.0]), "s": "x"})
+    assert out == {"z": None, "v": [1.0, None, 2.0], "a": [None, 3.0], "s": "x"}
+    json.dumps(out, allow_nan=False)
