@@ -89,7 +89,9 @@ def judge(*, base_train: float, base_future: float, train: float, future: float,
         "train_rms_ratio_to_noise": None if noise is None else math.sqrt(train / max(noise, 1e-300)),
     }
     reasons = []
-    if drop < cfg.future_drop:
+    if drop < 0:
+        reasons.append(f"held-out error rises {-100 * drop:.0f}%")
+    elif drop < cfg.future_drop:
         reasons.append(f"held-out error drops {100 * drop:.0f}% (< {100 * cfg.future_drop:.0f}%)")
     if d_bic >= 0:
         reasons.append(f"BIC does not improve (Δ = {d_bic:+.1f})")

@@ -115,6 +115,21 @@ def _centroids(a: np.ndarray, obs: Observation) -> np.ndarray:
     return np.stack([a[:, obs.body == b].mean(1) for b in range(obs.bodies)], axis=1)
 
 
+def smooth_frames(obs: Observation, frames, band: float, margin: int = 3) -> np.ndarray:
+    """[F] bool: the frames more than ``margin`` frames away from any body touching down or lifting off. An impact
+    a frame earlier or later in the model than in the measurement leaves a residual impulse there that no smooth
+    law explains; signatures are read off the other frames."""
+    frames = list(frames)
+    touch = contact(obs, band)
+    state = np.stack([touch[:, obs.body == b].any(1) for b in range(obs.bodies)], axis=1)  # [T, B]
+    change = np.nonzero((state[1:] != state[:-1]).any(1))[0] + 1  # frames where some body's state flips
+    far = np.ones(len(frames), dtype=bool)
+    for i, f in enumerate(frames):
+        if len(change) and np.abs(change - f).min() <= margin:
+            far[i] = False
+    return far
+
+
 def signatures(a_res: np.ndarray, drv: dict[str, np.ndarray], obs: Observation) -> dict[str, float]:
     """How much of the residual acceleration each driver explains with one coefficient per body (``const``: one
     constant vector per body): for the body drivers, the fraction of the variance of the bodies' *centroid*

@@ -109,7 +109,10 @@ def _disagreement(state: State, obs: Observation, floor: float) -> dict:
     fr = fit_frames(state.model)
     a = R.residual_accelerations(state.sim[[f - 1 for f in fr]], obs, fr)
     drv = R.drivers(obs, fr, dx)
-    out["signatures"] = R.signatures(a, drv, obs)
+    keep = R.smooth_frames(obs, fr, dx)
+    if keep.sum() < 3:
+        keep[:] = True
+    out["signatures"] = R.signatures(a[keep], {k: d[keep] for k, d in drv.items()}, obs)
     out["residual_force_gain"] = residual_force_gain(state.sim[[f - 1 for f in fr]], obs, fr)
     return out
 

@@ -212,3 +212,18 @@ def test_rigid_floor_keeps_point_noise_and_removes_rigid_misfit():
     expected = math.sqrt(0.002**2 + 0.001**2)
     assert abs(floor - expected) < 0.15 * expected, (floor, expected)
     assert R.rigid_floor(obs.x[frames] - drift, obs, frames) < 1e-6
+
+
+def test_signatures_skip_the_frames_around_an_impact():
+    """A body that touches down at frame 10: frames 7..13 are left out of the signatures, the rest kept."""
+    T = 20
+    z = np.maximum(0.3 - 0.03 * np.arange(T), 0.06)  # the cube's centre reaches 0.06 (bottom on the ground) at 8
+    x = np.stack([_cube(centre=(0.0, 0.0, zz)) for zz in z])
+    obs = Observation(times=np.arange(T) / 24, x=x, vol=np.full(x.shape[1], 1e-5), body=np.zeros(x.shape[1]),
+                      observed=T, lo=(-0.6, -0.6, -0.1), hi=(0.6, 0.6, 1.1), ground=0.0)  # fmt: skip
+    frames = list(range(1, T))
+    touch = R.contact(obs, band=0.02)[:, 0]
+    first = int(np.argmax(touch))
+    keep = R.smooth_frames(obs, frames, band=0.02, margin=3)
+    dropped = [f for f, k in zip(frames, keep, strict=True) if not k]
+    assert dropped == list(range(first - 3, first + 4)), (first, dropped)
