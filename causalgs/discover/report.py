@@ -140,12 +140,18 @@ def markdown(report: dict) -> str:
         L += [f"- {a['law']} (held-out MSE {a['future_mse_cm2']:.3g} cm²)" for a in report["ambiguous"]]
         L.append("")
     elif report["verdict"] == "unexplained discrepancy":
+        ratio = eb["fit_rms_m"] / report["floor_rms_m"]
         L += ["## Something is missing that the catalogue does not name", "",
-              f"A free residual force explains {_pct(report['disagreement']['residual_force_gain'])} of the residual "
-              "acceleration, but no candidate passed the gate.", ""]  # fmt: skip
+              f"The calibrated model stays {ratio:.1f}× above the noise floor ({_mm(report['floor_rms_m'])} per "
+              "coordinate) in rigid motion of the bodies, which a free force would remove, but no candidate passed "
+              f"the gate. A force constant over a few time blocks explains "
+              f"{_pct(report['disagreement']['residual_force_gain'])} of the residual acceleration (low: impulses "
+              "at contacts; high: a smooth force). Where and when: below.", ""]  # fmt: skip
     else:
-        L += ["## No missing effect", "", "The base model reaches the measurement's noise floor, or no candidate "
-              "improves the held-out frames enough to pass the gate.", ""]  # fmt: skip
+        ratio = eb["fit_rms_m"] / report["floor_rms_m"]
+        L += ["## No missing effect", "",
+              f"The calibrated model is within {ratio:.2f}× of the noise floor ({_mm(report['floor_rms_m'])} per "
+              "coordinate), and no candidate improves the held-out frames enough to pass the gate.", ""]  # fmt: skip
     L += ["## Errors (RMS distance per point)", "", "| | fit window | held-out future |", "|---|---|---|",
           f"| before | {_mm(eb['fit_rms_m'])} | {_mm(eb['future_rms_m'])} |",
           f"| after | {_mm(ea['fit_rms_m'])} | {_mm(ea['future_rms_m'])} |", "",

@@ -125,7 +125,7 @@ def _fake_report(effect: str | None, value: float = 0.0, verdict: str | None = N
     return {"verdict": verdict or ("discovered" if effect else "no missing effect"), "discovered": found,
             "ambiguous": [], "error_before": {"future_rms_m": 0.01, "fit_rms_m": 0.004},
             "error_after": {"future_rms_m": 0.004 if effect else 0.01, "fit_rms_m": 0.003}, "seconds": 1.0,
-            "noise": 0.002, "rounds": [], "final_spec": "gravity;walls",
+            "noise": 0.002, "floor_rms_m": 0.003, "rounds": [], "final_spec": "gravity;walls",
             "disagreement": {"floor": 0.003, "first_departure": None, "by_contact": {}, "signatures": {},
                              "residual_force_gain": 0.0}}  # fmt: skip
 
