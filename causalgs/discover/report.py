@@ -198,6 +198,9 @@ def markdown(report: dict) -> str:
         L += [f"| {k} | {v:.4g} | {after.get(k, float('nan')):.4g} |" for k, v in d0["base_before"].items()]
         L.append("")
         L += [f"Repaired model's effects: `{report['final_spec']}`", ""]
+        if report.get("refit_config"):
+            L += [f"Refit the scene with them: `causalgs fit DATA --config {report['refit_config']} --out NEW_RUN`",
+                  ""]  # fmt: skip
     L += ["Plots: `error.png` (error per frame), `residuals.png` (held-out residual heat), `paths.png` (centroids).",
           "", f"Took {report['seconds']:.0f} s."]  # fmt: skip
     return "\n".join(L) + "\n"

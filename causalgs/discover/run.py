@@ -69,5 +69,22 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
         if log:
             log("rendering the held-out views before and after")
         report["images"] = image_residuals(base["run"], obs, traj, out / "images.png")
+        if report["discovered"]:
+            report["refit_config"] = str(_repaired_config(Path(base["run"]), report, out / "config.toml"))
     write_outputs(out, report, traj, obs)
     return report
+
+
+def _repaired_config(run: Path, report: dict, path: Path) -> Path:
+    """The run's config with the discovered effects added to its physics (their parameters learned, starting at
+    the discovered values): ``causalgs fit DATA --config PATH`` refits the scene with them."""
+    from causalgs.model.config import FitConfig
+
+    cfg = FitConfig.load(run / "config.toml")
+    final = Effects.from_spec(report["final_spec"])
+    cfg.physics.effects = final.spec()
+    new = [p for d in report["discovered"] for p in d["params"]]
+    keep = [n for n in cfg.physics.learn if n in final.param_names()]
+    cfg.physics.learn = tuple(dict.fromkeys([*keep, *[n for n in new if n in final.param_names()]]))
+    cfg.save(path)
+    return path

@@ -220,6 +220,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
     report["floor_rms_m"] = floor_coord
     floor = math.sqrt(3) * floor_coord  # per point (3D), for the error curves
     report["disagreement"] = _disagreement(base, obs, floor)
+    report["first_departure"] = report["disagreement"]["first_departure"]
     pool = [c for c in select(candidates) if c.applies(base_model.effects, base_model.learn)]
     current = base
     best_train = base.train

@@ -406,3 +406,13 @@ def test_discovery_reads_a_fitted_run(fitted, tmp_path):
     im = rep["images"]  # held-out cameras at held-out frames, rendered before and after
     assert im is not None and im["images"] >= 1 and np.isfinite(im["psnr_before"]) and (out / "images.png").is_file()
     assert min(im["frames"]) >= obs.observed
+    # The repair goes into a config a refit can use: the run's, with the discovered effect learned from its value.
+    from causalgs.discover.run import _repaired_config
+    from causalgs.model.config import FitConfig
+
+    spec = base["spec"] + ";linear_drag:c=0.4"
+    path = _repaired_config(fitted, {"final_spec": spec, "discovered": [{"params": {"linear_drag.c": 0.4}}]},
+                            tmp_path / "config.toml")  # fmt: skip
+    cfg = FitConfig.load(path)
+    assert "linear_drag:c=0.4" in cfg.physics.effects and "linear_drag.c" in cfg.physics.learn
+    assert set(m.config.physics.learn) <= set(cfg.physics.learn)
