@@ -69,7 +69,7 @@ CATALOGUE: tuple[Candidate, ...] = (
     Candidate("quadratic_drag", "quadratic drag", "a = −k·|v|·v", "quadratic_drag", ("quadratic_drag.k",), (0.3,),
               "vv", ("linear_drag",)),
     Candidate("damping", "material damping (Kelvin–Voigt viscosity)", "σ += 2·eta·sym(∇v)", "damping",
-              ("damping.eta",), (3.0,), "internal", ("linear_drag",)),
+              ("damping.eta",), (30.0,), "internal", ("linear_drag",)),
     Candidate("friction", "Coulomb friction at the ground", "|Δv_t| ≤ mu·|Δv_n| at contact", "ground",
               ("ground.mu",), (0.3,), "contact", ("ground_sticky", "linear_drag")),
     Candidate("sticky", "sticky ground", "v = 0 at contact", "ground_sticky", ("ground_sticky.d",), (0.0,),

@@ -56,7 +56,7 @@ class Knob:
 
 
 # Typical magnitudes of effect parameters (internal unit = one scale): a step of one unit is a visible change.
-SCALES = {"g": 1.0, "b": 1.0, "c": 0.3, "k": 0.3, "mu": 0.3, "d": 0.01, "n": 0.1, "eta": 3.0, "yield_stress": 2e3}
+SCALES = {"g": 1.0, "b": 1.0, "c": 0.3, "k": 0.3, "mu": 0.3, "d": 0.01, "n": 0.1, "eta": 30.0, "yield_stress": 2e3}
 
 
 def _expand(names, effects: Effects) -> list[str]:
