@@ -89,8 +89,10 @@ def judge(*, base_train: float, base_future: float, train: float, future: float,
         "train_rms_ratio_to_noise": None if noise is None else math.sqrt(train / max(noise, 1e-300)),
     }
     reasons = []
-    if drop < 0:
+    if drop <= -0.005:
         reasons.append(f"held-out error rises {-100 * drop:.0f}%")
+    elif drop < 0.005:
+        reasons.append("held-out error does not change")
     elif drop < cfg.future_drop:
         reasons.append(f"held-out error drops {100 * drop:.0f}% (< {100 * cfg.future_drop:.0f}%)")
     if d_bic >= 0:
