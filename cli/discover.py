@@ -108,12 +108,14 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
 @click.command(name="discover-table")
 @out_option()
 @click.option("--seeds", type=click.IntRange(1, 100), default=1, show_default=True, help="Seeds per case.")
+@click.option("--first-seed", type=click.IntRange(0, 10_000), default=0, show_default=True,
+              help="The first seed (seeds FIRST .. FIRST+SEEDS-1), to spread one table over several runs.")
 @click.option("--only", default=None,
               help="Cases to run, comma-separated: case names (e.g. 'linear_drag') or kinds (hidden, control, "
                    "outside, pair).  [default: all]")  # fmt: skip
 @click.option("--res", type=click.IntRange(8, 64), default=20, show_default=True,
               help="Grid of the simulated measurement and of the model.")
-def discover_table(out, seeds, only, res):
+def discover_table(out, seeds, first_seed, only, res):
     """Reproduce the hidden-effect table: for every effect of the catalogue, a tossed block simulated with it and
     a model without it; negative controls with nuisances; an effect outside the catalogue.
 
@@ -131,7 +133,7 @@ def discover_table(out, seeds, only, res):
     if bad:
         raise CausalGSError(f"--only: unknown case(s) {', '.join(bad)}; cases: {', '.join(c.name for c in CASES)}")
     _ti.init("cpu", "float32", quiet=True)
-    cfg = TableConfig(seeds=seeds, res=res, only=names, discover=DiscoverConfig(res=res))
+    cfg = TableConfig(seeds=seeds, first_seed=first_seed, res=res, only=names, discover=DiscoverConfig(res=res))
     rows = run_table(out, cfg, log=_console_log())
     s = summary(rows)
     click.echo(json.dumps(s))

@@ -79,6 +79,7 @@ BY_NAME = {c.name: c for c in CASES}
 @dataclass
 class TableConfig:
     seeds: int = 1
+    first_seed: int = 0  # seeds first_seed .. first_seed + seeds - 1 (to spread a table over machines or runs)
     res: int = 20  # the model's and the measurement's grid
     frames: int = 30
     fps: float = 24.0
@@ -151,7 +152,7 @@ def run_table(out, cfg: TableConfig | None = None, log=None) -> list[dict]:
     cases = [c for c in CASES if not cfg.only or c.name in cfg.only or c.kind in cfg.only]
     rows = list(done.values())
     for case in cases:
-        for seed in range(cfg.seeds):
+        for seed in range(cfg.first_seed, cfg.first_seed + cfg.seeds):
             if (case.name, seed) in done:
                 continue
             t0 = time.monotonic()
