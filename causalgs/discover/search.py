@@ -243,6 +243,14 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
                 entry["refits"].append({"effect": s.candidate.key, "error": str(e)})
                 continue
             refits.append((s.candidate, st))
+        if refits:  # polish the best refit before judging it: it is the one the floor checks are about
+            i = min(range(len(refits)), key=lambda j: refits[j][1].train)
+            c_best, st_best = refits[i]
+            log(f"  polishing {c_best.key}")
+            polished = calibrate(st_best.model, st_best.fit.theta, iterations=2 * cfg.iterations)
+            if polished.loss < st_best.fit.loss:
+                refits[i] = (c_best, _state(st_best.model, polished))
+        for _, st in refits:
             best_train = min(best_train, st.train)
         n_eff = effective_n(len(fit_frames(current.model)), obs.bodies, obs.points, cfg.gate.clusters_per_body)
         passed = []
@@ -278,9 +286,9 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
             current = top[1]
             break
         c, st, unc, v = top
-        # Polish the accepted refit: a missing effect and the throw trade off along a long valley (a lower upward
-        # throw against an upward push over a short flight), which L-BFGS leaves slowly; the value and its
-        # interval are quoted from the converged fit.
+        # Polish the accepted refit (again, if it was polished above): a missing effect and the throw trade off
+        # along a long valley (a lower upward throw against an upward push over a short flight), which L-BFGS
+        # leaves slowly; the value and its interval are quoted from the converged fit.
         polished = calibrate(st.model, st.fit.theta, iterations=2 * cfg.iterations)
         if polished.loss < st.fit.loss:
             st = _state(st.model, polished)
