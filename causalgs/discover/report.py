@@ -141,9 +141,11 @@ def markdown(report: dict) -> str:
         L.append("")
     elif report["verdict"] == "unexplained discrepancy":
         ratio = eb["fit_rms_m"] / report["floor_rms_m"]
+        fut = eb["future_rms_m"] / report["floor_rms_m"]
         L += ["## Something is missing that the catalogue does not name", "",
               f"The calibrated model stays {ratio:.1f}× above the noise floor ({_mm(report['floor_rms_m'])} per "
-              "coordinate) in rigid motion of the bodies, which a free force would remove, but no candidate passed "
+              f"coordinate) on the fit window and {fut:.1f}× on the held-out frames, in rigid motion of the bodies "
+              "that a free force would remove, but no candidate passed "
               f"the gate. A force constant over a few time blocks explains "
               f"{_pct(report['disagreement']['residual_force_gain'])} of the residual acceleration (low: impulses "
               "at contacts; high: a smooth force). Where and when: below.", ""]  # fmt: skip
