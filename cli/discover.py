@@ -73,10 +73,13 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
 
     \b
     Verdicts: the named effect(s) with their law and interval; "ambiguous" (the data does not separate two
-    candidates); "no missing effect"; "unexplained discrepancy" (a free force helps, no named effect passes).
+    candidates); "no missing effect"; "unexplained discrepancy" (the model stays well above the noise floor, a
+    free force would help, but no named effect passes).
 
     Writes --out/report.json, report.md, error.png (error per frame before and after), residuals.png (held-out
-    residual heat on the particles), paths.png and discover.json (the options).
+    residual heat on the particles), paths.png and discover.json (the options); for a run also images.png (held-out
+    cameras at held-out frames, rendered before and after) and, when an effect is found, config.toml (the run's
+    config with it added: `causalgs fit DATA --config DIR/config.toml` refits the scene).
     """
     from causalgs import _ti
     from causalgs.discover.candidates import select
