@@ -172,7 +172,35 @@ def _uncertainty(state: State, params, cfg: DiscoverConfig) -> dict:
         out[p] = {"value": vals[p], "se": se, "interval": [float(lo), float(hi)],
                   # No spread at all means the data does not move the parameter (no sensitivity, or pinned at a
                   # bound): nothing is known about it, so it is not significant.
-                  "z": abs(vals[p] - off) / se if se > 0 else 0.0}  # fmt: skip
+                  "z": abs(vals[p] - off) / se if se > 0 else 0.0, "samples": samples - vals[p]}  # fmt: skip
+    return out
+
+
+def _public(unc: dict) -> dict:
+    """The uncertainty entries without their bootstrap samples (for the report)."""
+    return {p: {k: v for k, v in u.items() if k != "samples"} for p, u in unc.items()}
+
+
+def significance(unc: dict) -> dict[str, float]:
+    """z per *parameter* of the candidate: a scalar's own z; for a vector (``force.b[0..2]``) the size of the
+    estimate over the bootstrap spread along its direction, so that a push along x is significant although its y
+    and z components are (rightly) zero."""
+    groups: dict[str, list[str]] = {}
+    for p in unc:
+        groups.setdefault(p.split("[")[0], []).append(p)
+    out = {}
+    for name, members in groups.items():
+        if len(members) == 1:
+            out[members[0]] = unc[members[0]]["z"]
+            continue
+        v = np.array([unc[p]["value"] for p in members])
+        norm = float(np.linalg.norm(v))
+        if norm == 0.0:
+            out[name] = 0.0
+            continue
+        along = np.stack([unc[p]["samples"] for p in members], axis=1) @ (v / norm)
+        spread = float(along.std())
+        out[name] = norm / spread if spread > 0 else 0.0
     return out
 
 
@@ -260,7 +288,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         passed = []
         for c, st in refits:
             unc = _uncertainty(st, c.params, cfg)
-            z = {p: u["z"] for p, u in unc.items()}
+            z = significance(unc)
             if c.replaces is not None:  # structural: the plane offset is not a new parameter of interest
                 z = {}
             v = judge(base_train=current.train, base_future=current.future, train=st.train, future=st.future,
@@ -268,7 +296,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
                       k_base=len(current.model.knobs), z=z, cfg=cfg.gate,
                       noise=(floor_coord / UNIT) ** 2)  # fmt: skip
             res = {"effect": c.key, "train_mse_cm2": st.train, "future_mse_cm2": st.future, "passed": v.passed,
-                   "checks": v.checks, "reasons": v.reasons, "params": unc,
+                   "checks": v.checks, "reasons": v.reasons, "params": _public(unc),
                    "values": st.model.values(st.fit.theta)}  # fmt: skip
             entry["refits"].append(res)
             if v.passed:
@@ -307,7 +335,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
             "interval": {p: unc[p]["interval"] for p in c.params},
             "evidence": {"signature": c.driver, "signature_share": sig.get(c.driver),
                          "future_drop": v.checks["future_drop"], "delta_bic": v.checks["delta_bic"],
-                         "z": {p: unc[p]["z"] for p in c.params}},
+                         "z": significance(unc)},
             "runners_up": [{"effect": o.key, "passed": scores[o.key]["passed"],
                             "future_mse_cm2": scores[o.key]["future_mse_cm2"],
                             "delta_bic": scores[o.key]["checks"]["delta_bic"]}

@@ -227,3 +227,22 @@ def test_signatures_skip_the_frames_around_an_impact():
     keep = R.smooth_frames(obs, frames, band=0.02, margin=3)
     dropped = [f for f, k in zip(frames, keep, strict=True) if not k]
     assert dropped == list(range(first - 3, first + 4)), (first, dropped)
+
+
+def test_a_vector_parameter_is_judged_as_a_whole():
+    """A push along x with (rightly) zero y and z components is significant; a vector lost in its spread is not;
+    scalars keep their own z."""
+    from causalgs.discover.search import significance
+
+    rng = np.random.default_rng(0)
+
+    def entry(value, sd):
+        s = sd * rng.standard_normal(400)
+        return {"value": value, "z": abs(value) / sd, "samples": s}
+
+    push = {"force.b[0]": entry(0.8, 0.01), "force.b[1]": entry(0.001, 0.01), "force.b[2]": entry(-0.002, 0.01)}
+    z = significance(push)
+    assert set(z) == {"force.b"} and z["force.b"] > 50
+    lost = {"force.b[0]": entry(0.01, 0.05), "force.b[1]": entry(0.0, 0.05), "force.b[2]": entry(0.01, 0.05)}
+    assert significance(lost)["force.b"] < 3
+    assert significance({"linear_drag.c": entry(0.6, 0.02)}) == {"linear_drag.c": pytest.approx(30.0)}
