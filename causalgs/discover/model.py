@@ -23,6 +23,7 @@ import torch
 
 from causalgs import _ti
 from causalgs.discover.observation import Observation
+from causalgs.discover.residuals import twist_basis
 from causalgs.errors import CausalGSError
 from causalgs.sim import SimConfig, Simulator
 from causalgs.sim.autograd import simulate
@@ -158,13 +159,8 @@ class PhysicsModel:
         c = self.centroids.double().numpy()
         for b in range(obs.bodies):
             sel = obs.body == b
-            r = obs.x[0][sel] - c[b]
-            A = np.zeros((sel.sum(), 3, 6))
-            A[:, :, :3] = np.eye(3)
-            A[:, 0, 4], A[:, 0, 5] = r[:, 2], -r[:, 1]  # ω × r
-            A[:, 1, 3], A[:, 1, 5] = -r[:, 2], r[:, 0]
-            A[:, 2, 3], A[:, 2, 4] = r[:, 1], -r[:, 0]
-            sol, *_ = np.linalg.lstsq(A.reshape(-1, 6), v[sel].reshape(-1), rcond=None)
+            A = twist_basis(obs.x[0][sel] - c[b])
+            sol, *_ = np.linalg.lstsq(A, v[sel].reshape(-1), rcond=None)
             out[b] = sol
         return out
 

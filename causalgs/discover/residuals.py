@@ -156,6 +156,16 @@ def signatures(a_res: np.ndarray, drv: dict[str, np.ndarray], obs: Observation) 
     return out
 
 
+def twist_basis(r: np.ndarray) -> np.ndarray:
+    """[3n, 6]: the flattened velocities u + ω × r of points at offsets ``r`` [n, 3] per unit twist (u, ω)."""
+    A = np.zeros((len(r), 3, 6))
+    A[:, :, :3] = np.eye(3)
+    A[:, 0, 4], A[:, 0, 5] = r[:, 2], -r[:, 1]
+    A[:, 1, 3], A[:, 1, 5] = -r[:, 2], r[:, 0]
+    A[:, 2, 3], A[:, 2, 4] = r[:, 1], -r[:, 0]
+    return A.reshape(-1, 6)
+
+
 def rigid_floor(sim: np.ndarray, obs: Observation, frames) -> float:
     """Per-coordinate RMS (m) of what is left of the residual (measured − simulated, [F, P, 3] at ``frames``) once
     every body's best rigid motion is removed frame by frame (a translation and a small rotation, least squares).
@@ -173,13 +183,7 @@ def rigid_floor(sim: np.ndarray, obs: Observation, frames) -> float:
         q = p - p.mean(1, keepdims=True)
         for k in range(len(frames)):
             rk = r[k, sel]
-            A = np.zeros((len(rk), 3, 6))
-            A[:, :, :3] = np.eye(3)
-            x, y, z = q[k, :, 0], q[k, :, 1], q[k, :, 2]
-            A[:, 0, 4], A[:, 0, 5] = z, -y  # ω × q
-            A[:, 1, 3], A[:, 1, 5] = -z, x
-            A[:, 2, 3], A[:, 2, 4] = y, -x
-            A = A.reshape(-1, 6)
+            A = twist_basis(q[k])
             sol, *_ = np.linalg.lstsq(A, rk.reshape(-1), rcond=None)
             e = rk.reshape(-1) - A @ sol
             left += float(e @ e)
