@@ -116,9 +116,13 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
 @click.option("--only", default=None,
               help="Cases to run, comma-separated: case names (e.g. 'linear_drag') or kinds (hidden, control, "
                    "outside, pair).  [default: all]")  # fmt: skip
+@click.option("--control-seeds", type=click.IntRange(1, 100), default=None,
+              help="Seeds per negative control (5 controls × 4 seeds = the 20 the goal counts).  [default: --seeds]")
 @click.option("--res", type=click.IntRange(8, 64), default=20, show_default=True,
               help="Grid of the simulated measurement and of the model.")
-def discover_table(out, seeds, first_seed, only, res):
+@click.option("--jobs", type=click.IntRange(1, 64), default=1, show_default=True,
+              help="Runs at once, each in its own process.")
+def discover_table(out, seeds, first_seed, only, control_seeds, res, jobs):
     """Reproduce the hidden-effect table: for every effect of the catalogue, a tossed block simulated with it and
     a model without it; negative controls with nuisances; an effect outside the catalogue.
 
@@ -135,8 +139,10 @@ def discover_table(out, seeds, first_seed, only, res):
     bad = [n for n in names if n not in known]
     if bad:
         raise CausalGSError(f"--only: unknown case(s) {', '.join(bad)}; cases: {', '.join(c.name for c in CASES)}")
-    _ti.init("cpu", "float32", quiet=True)
-    cfg = TableConfig(seeds=seeds, first_seed=first_seed, res=res, only=names, discover=DiscoverConfig(res=res))
+    if jobs == 1:
+        _ti.init("cpu", "float32", quiet=True)
+    cfg = TableConfig(seeds=seeds, first_seed=first_seed, res=res, only=names, control_seeds=control_seeds,
+                      jobs=jobs, discover=DiscoverConfig(res=res))  # fmt: skip
     rows = run_table(out, cfg, log=_console_log())
     s = summary(rows)
     click.echo(json.dumps(s))

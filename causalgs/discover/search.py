@@ -40,8 +40,16 @@ class DiscoverConfig:
     starts: tuple[float, ...] = (1e4, 1e5)  # starting stiffnesses of the base calibration (Pa)
     iterations: int = 25  # L-BFGS iterations per calibration
     warm: float = 0.4  # every calibration first fits this leading fraction of the window (0: off)
-    finalists: int = 3  # candidates refitted per round
+    finalists: int = 3  # candidates refitted per round, by screen gain
     min_gain: float = 0.02  # screen gain below which a candidate is not refitted
+    # ... and, beyond those, the candidates whose residual signature explains the residual best (at least this
+    # share, within ``signature_tie`` of the best candidate's): a base biased towards mimicking the missing effect
+    # (a lower throw for drag) leaves the linearised screen little to gain, but its residual still has the shape
+    signature_min: float = 0.5
+    signature_tie: float = 0.02
+    # Refits whose fit-window error is within this factor of the best one are polished too before the gate: two
+    # confusable candidates are compared at convergence, not at wherever the first L-BFGS run stopped.
+    polish_within: float = 1.5
     max_effects: int = 2
     ambiguity_bic: float = 10.0  # ΔBIC within which two passing candidates are not separated
     ambiguity_future: float = 0.15  # relative held-out error within which two passing candidates tie
@@ -114,12 +122,7 @@ def _disagreement(state: State, obs: Observation, floor: float) -> dict:
         "flight": float(np.sqrt(d2[~touch].mean())) if (~touch).any() else None,
     }
     fr = fit_frames(state.model)
-    a = R.residual_accelerations(state.sim[[f - 1 for f in fr]], obs, fr)
-    drv = R.drivers(obs, fr, dx)
-    keep = R.smooth_frames(obs, fr, dx)
-    if keep.sum() < 3:
-        keep[:] = True
-    out["signatures"] = R.signatures(a[keep], {k: d[keep] for k, d in drv.items()}, obs)
+    out["signatures"] = current_signatures(state, obs)
     out["residual_force_gain"] = residual_force_gain(state.sim[[f - 1 for f in fr]], obs, fr)
     return out
 
@@ -204,6 +207,36 @@ def significance(unc: dict) -> dict[str, float]:
     return out
 
 
+def pick_finalists(screened, signatures: dict, cfg: DiscoverConfig) -> list:
+    """The candidates to refit: the best ``cfg.finalists`` by screen gain (at least ``cfg.min_gain``), then any
+    other whose driver's signature share is at least ``cfg.signature_min`` and within ``cfg.signature_tie`` of the
+    best share among the screened candidates (and whose screen gain is not negative: a change that the screen
+    finds worse than the base is not what the residual's shape asks for)."""
+    out = [s for s in screened if s.gain >= cfg.min_gain][: cfg.finalists]
+    shares = {s.candidate.key: signatures.get(s.candidate.driver) for s in screened}
+    known = [v for v in shares.values() if v is not None]
+    if known:
+        top = max(known)
+        for s in screened:
+            v = shares[s.candidate.key]
+            if (v is not None and v >= cfg.signature_min and v >= top - cfg.signature_tie and s.gain >= 0
+                    and all(s is not o for o in out)):  # fmt: skip
+                out.append(s)
+    return out
+
+
+def current_signatures(state: State, obs: Observation) -> dict:
+    """Residual signatures of a (repaired) model's rollout over its fit window, as in the disagreement map."""
+    fr = fit_frames(state.model)
+    dx = (obs.hi[0] - obs.lo[0]) / state.model.res
+    a = R.residual_accelerations(state.sim[[f - 1 for f in fr]], obs, fr)
+    drv = R.drivers(obs, fr, dx)
+    keep = R.smooth_frames(obs, fr, dx)
+    if keep.sum() < 3:
+        keep[:] = True
+    return R.signatures(a[keep], {k: d[keep] for k, d in drv.items()}, obs)
+
+
 def _law(c: Candidate, unc: dict) -> str:
     parts = []
     for p in c.params:
@@ -262,9 +295,11 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
             break
         log(f"round {round_ + 1}: screening {', '.join(c.key for c in pool)}")
         screened = screen(current.model, current.fit.theta, pool, fit_frames(current.model))
-        finalists = [s for s in screened if s.gain >= cfg.min_gain][: cfg.finalists]
-        entry = {"screen": [{"effect": s.candidate.key, "gain": s.gain, "step": s.step} for s in screened],
-                 "refits": []}  # fmt: skip
+        sig = report["disagreement"]["signatures"] if round_ == 0 else current_signatures(current, obs)
+        finalists = pick_finalists(screened, sig, cfg)
+        entry = {"screen": [{"effect": s.candidate.key, "gain": s.gain, "step": s.step,
+                             "signature_share": sig.get(s.candidate.driver)} for s in screened],
+                 "finalists": [s.candidate.key for s in finalists], "refits": []}  # fmt: skip
         report["rounds"].append(entry)
         refits = []
         for s in finalists:
@@ -275,13 +310,15 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
                 entry["refits"].append({"effect": s.candidate.key, "error": str(e)})
                 continue
             refits.append((s.candidate, st))
-        if refits:  # polish the best refit before judging it: it is the one the floor checks are about
-            i = min(range(len(refits)), key=lambda j: refits[j][1].train)
-            c_best, st_best = refits[i]
-            log(f"  polishing {c_best.key}")
-            polished = calibrate(st_best.model, st_best.fit.theta, iterations=2 * cfg.iterations)
-            if polished.loss < st_best.fit.loss:
-                refits[i] = (c_best, _state(st_best.model, polished))
+        if refits:  # polish the contenders before judging them: the floor checks compare them with the best
+            lead = min(st.train for _, st in refits)
+            for i, (c_i, st_i) in enumerate(refits):
+                if st_i.train > cfg.polish_within * lead:
+                    continue
+                log(f"  polishing {c_i.key}")
+                polished = calibrate(st_i.model, st_i.fit.theta, iterations=2 * cfg.iterations)
+                if polished.loss < st_i.fit.loss:
+                    refits[i] = (c_i, _state(st_i.model, polished))
         for _, st in refits:
             best_train = min(best_train, st.train)
         n_eff = effective_n(len(fit_frames(current.model)), obs.bodies, obs.points, cfg.gate.clusters_per_body)
@@ -325,7 +362,6 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         if polished.loss < st.fit.loss:
             st = _state(st.model, polished)
             unc = _uncertainty(st, c.params, cfg)
-        sig = report["disagreement"]["signatures"]
         scores = {r["effect"]: r for r in entry["refits"] if "error" not in r}
         report["discovered"].append({
             "effect": c.key,

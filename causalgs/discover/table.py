@@ -86,6 +86,8 @@ class TableConfig:
     noise: float = 0.002  # m per coordinate
     rest_noise: float = 0.002  # m, on the first frame of every case (added to the case's own)
     only: tuple[str, ...] = ()  # case names (empty: all)
+    control_seeds: int | None = None  # seeds per negative control (None: ``seeds``); 4 × 5 controls = 20
+    jobs: int = 1  # runs at once, each in its own process
     discover: DiscoverConfig = field(default_factory=lambda: DiscoverConfig(res=20))
 
 
@@ -135,11 +137,63 @@ def score(case: Case, report: dict) -> dict:
     }  # fmt: skip
 
 
+def _run_one(case_name: str, seed: int, cfg: TableConfig, out: Path, log=None) -> dict:
+    """One case × seed: its folder of outputs and its row (a failing run is a row too)."""
+    from causalgs.discover.report import write_outputs
+
+    log = log or (lambda msg: None)
+    case = BY_NAME[case_name]
+    t0 = time.monotonic()
+    obs = observe(case, seed, cfg)
+    folder = out / f"{_slug(case.name)}-s{seed}"
+    folder.mkdir(parents=True, exist_ok=True)
+    obs.save(folder / "observation.npz")
+    start, starts = _start(case, obs)
+    dcfg = cfg.discover if starts is None else dataclasses.replace(cfg.discover, starts=starts)
+    try:
+        report, traj = discover(obs, case.model, case.learn, config=dcfg, log=log, start=start)
+    except CausalGSError as e:  # one failing case is a row of the table, not the end of it
+        return _failed(case, seed, str(e), time.monotonic() - t0)
+    report["source"] = str(folder / "observation.npz")
+    report["truth"] = obs.truth
+    write_outputs(folder, report, traj, obs)
+    return {**score(case, report), "seed": seed, "seconds": time.monotonic() - t0}
+
+
+def _failed(case: Case, seed: int, why: str, seconds: float) -> dict:
+    return {"case": case.name, "kind": case.kind, "expected": case.expect, "seed": seed, "verdict": f"failed: {why}",
+            "found": [], "first_ok": False, "in_set": False, "param_error": None, "future_rms_before_m": None,
+            "future_rms_after_m": None, "future_drop": 0.0, "seconds": seconds}  # fmt: skip
+
+
+def _worker_init(threads: int) -> None:
+    import torch
+
+    from causalgs import _ti
+
+    torch.set_num_threads(threads)
+    _ti.init("cpu", "float32", quiet=True)
+
+
+def _worker(case_name: str, seed: int, cfg: TableConfig, out: str) -> dict:
+    return _run_one(case_name, seed, cfg, Path(out))
+
+
+def plan(cfg: TableConfig) -> list[tuple[str, int]]:
+    """The (case, seed) runs of a table, in table order."""
+    cases = [c for c in CASES if not cfg.only or c.name in cfg.only or c.kind in cfg.only]
+    out = []
+    for case in cases:
+        n = cfg.control_seeds if case.kind == "control" and cfg.control_seeds is not None else cfg.seeds
+        out += [(case.name, seed) for seed in range(cfg.first_seed, cfg.first_seed + n)]
+    return out
+
+
 def run_table(out, cfg: TableConfig | None = None, log=None) -> list[dict]:
     """Every case × seed: writes ``out/CASE-sSEED/{observation.npz, report.json, report.md, plots}``, then
     ``out/table.json`` and ``out/table.md`` (updated after every run, so an interrupted table keeps its rows; rows
-    already in ``table.json`` are not run again)."""
-    from causalgs.discover.report import write_outputs
+    already in ``table.json`` are not run again). ``cfg.jobs`` > 1 runs that many cases at once, each in a fresh
+    process (Taichi and torch share the cores between them)."""
     from causalgs.io import read_json
 
     cfg = cfg or TableConfig()
@@ -149,38 +203,35 @@ def run_table(out, cfg: TableConfig | None = None, log=None) -> list[dict]:
     done = {}
     if (out / "table.json").is_file():
         done = {(r["case"], r["seed"]): r for r in read_json(out / "table.json", "table").get("rows", [])}
-    cases = [c for c in CASES if not cfg.only or c.name in cfg.only or c.kind in cfg.only]
     rows = list(done.values())
-    for case in cases:
-        for seed in range(cfg.first_seed, cfg.first_seed + cfg.seeds):
-            if (case.name, seed) in done:
-                continue
-            t0 = time.monotonic()
-            log(f"{case.name}, seed {seed}")
-            obs = observe(case, seed, cfg)
-            folder = out / f"{_slug(case.name)}-s{seed}"
-            folder.mkdir(parents=True, exist_ok=True)
-            obs.save(folder / "observation.npz")
-            start, starts = _start(case, obs)
-            dcfg = cfg.discover if starts is None else dataclasses.replace(cfg.discover, starts=starts)
+    todo = [k for k in plan(cfg) if k not in done]
+
+    def finish(row: dict) -> None:
+        rows.append(row)
+        log(f"{row['case']}, seed {row['seed']} -> {row['verdict']} {row['found']} ({row['seconds']:.0f} s)")
+        _write(out, rows, cfg)
+
+    if cfg.jobs <= 1:
+        for name, seed in todo:
+            log(f"{name}, seed {seed}")
+            finish(_run_one(name, seed, cfg, out, log))
+        return rows
+    import multiprocessing
+    import os
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    threads = max(1, (os.cpu_count() or 1) // cfg.jobs)
+    ctx = multiprocessing.get_context("spawn")  # Taichi's runtime must not be forked
+    with ProcessPoolExecutor(cfg.jobs, mp_context=ctx, initializer=_worker_init, initargs=(threads,)) as pool:
+        futures = {pool.submit(_worker, name, seed, cfg, str(out)): (name, seed) for name, seed in todo}
+        log(f"{len(todo)} runs, {cfg.jobs} at once")
+        for fut in as_completed(futures):
+            name, seed = futures[fut]
             try:
-                report, traj = discover(obs, case.model, case.learn, config=dcfg, log=log, start=start)
-            except CausalGSError as e:  # one failing case is a row of the table, not the end of it
-                log(f"  -> failed: {e}")
-                rows.append({"case": case.name, "kind": case.kind, "expected": case.expect, "seed": seed,
-                             "verdict": f"failed: {e}", "found": [], "first_ok": False, "in_set": False,
-                             "param_error": None, "future_rms_before_m": None, "future_rms_after_m": None,
-                             "future_drop": 0.0,
-                             "seconds": time.monotonic() - t0})  # fmt: skip
-                _write(out, rows, cfg)
-                continue
-            report["source"] = str(folder / "observation.npz")
-            report["truth"] = obs.truth
-            write_outputs(folder, report, traj, obs)
-            row = {**score(case, report), "seed": seed, "seconds": time.monotonic() - t0}
-            rows.append(row)
-            log(f"  -> {row['verdict']} {row['found']} ({row['seconds']:.0f} s)")
-            _write(out, rows, cfg)
+                row = fut.result()
+            except Exception as e:  # a crashed worker is a row of the table, not the end of it
+                row = _failed(BY_NAME[name], seed, f"{type(e).__name__}: {e}", 0.0)
+            finish(row)
     return rows
 
 

@@ -246,3 +246,36 @@ def test_a_vector_parameter_is_judged_as_a_whole():
     lost = {"force.b[0]": entry(0.01, 0.05), "force.b[1]": entry(0.0, 0.05), "force.b[2]": entry(0.01, 0.05)}
     assert significance(lost)["force.b"] < 3
     assert significance({"linear_drag.c": entry(0.6, 0.02)}) == {"linear_drag.c": pytest.approx(30.0)}
+
+
+def test_finalists_add_the_candidate_whose_signature_fits_the_residual():
+    """A base that mimicked drag leaves the linearised screen little to gain from drag; the residual's shape (its
+    correlation with velocity) still brings drag to the refits. A negative screen gain is never added."""
+    from causalgs.discover.candidates import BY_KEY
+    from causalgs.discover.screen import Screened
+    from causalgs.discover.search import DiscoverConfig, pick_finalists
+
+    def s(key, gain):
+        return Screened(BY_KEY[key], gain, {}, None, None)
+
+    screened = [s("plasticity", 0.032), s("quadratic_drag", 0.018), s("damping", 0.016), s("linear_drag", 0.012),
+                s("force", 0.006), s("sticky", -6.0)]  # fmt: skip
+    sig = {"v": 0.986, "vv": 0.986, "contact": 0.0, "const": 0.73, "internal": 0.59}
+    keys = [f.candidate.key for f in pick_finalists(screened, sig, DiscoverConfig())]
+    assert keys == ["plasticity", "quadratic_drag", "linear_drag"]
+    # A residual whose shape fits no driver well (noise) adds nothing beyond the screen's own finalists.
+    flat = {"v": 0.2, "vv": 0.21, "contact": 0.0, "const": 0.3, "internal": 0.1}
+    assert [f.candidate.key for f in pick_finalists(screened, flat, DiscoverConfig())] == ["plasticity"]
+    # The sticky ground's signature (contact) is the best, but its screen found it worse than the base.
+    contact = {"v": 0.1, "vv": 0.1, "contact": 0.9, "const": 0.2, "internal": 0.1}
+    assert "sticky" not in [f.candidate.key for f in pick_finalists(screened, contact, DiscoverConfig())]
+
+
+def test_table_plan_runs_twenty_negative_controls():
+    from causalgs.discover.table import CASES, TableConfig, plan
+
+    runs = plan(TableConfig(seeds=3, control_seeds=4))
+    controls = [r for r in runs if r[0].startswith("control")]
+    assert len(controls) == 20 and len(set(controls)) == 20
+    assert len(runs) == 20 + 3 * (len(CASES) - 5)
+    assert plan(TableConfig(seeds=2, first_seed=5, only=("force",))) == [("force", 5), ("force", 6)]
