@@ -12,6 +12,7 @@ and renders a state from a camera. Time is in frames of the dataset (seconds = f
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -224,7 +225,9 @@ class CausalGS(torch.nn.Module):
             lo[2] = ground_z
             hi[2] = max(float(hi[2]), ground_z + 0.1 * size)
         side = float((hi - lo).max())
-        dx = side / (pc.res - 2 * (WALL_BAND + 1))
+        # The margin around the moving region is a fixed share of it (an eighth of the grid at any resolution), so
+        # a finer grid resolves the same box more finely instead of hugging the bodies' paths more tightly.
+        dx = side / (pc.res - 2 * max(WALL_BAND + 1, math.ceil(pc.res / 8)))
         centre = (lo + hi) / 2
         box_lo = centre - 0.5 * pc.res * dx
         box_lo[2] = lo[2] - (WALL_BAND + 0.5) * dx  # the ground plane just above the bottom wall band

@@ -416,3 +416,18 @@ def test_discovery_reads_a_fitted_run(fitted, tmp_path):
     cfg = FitConfig.load(path)
     assert "linear_drag:c=0.4" in cfg.physics.effects and "linear_drag.c" in cfg.physics.learn
     assert set(m.config.physics.learn) <= set(cfg.physics.learn)
+
+
+def test_a_finer_simulation_grid_covers_the_same_box(fitted):
+    """The margin around the bodies' paths is a share of the box, not a number of cells: a finer grid resolves the
+    same domain (at 64 cells it once hugged the paths so tightly that a fast body left the grid)."""
+    from causalgs.model.fit import load_model
+
+    m, _, _ = load_model(fitted)
+    extents = {}
+    for res in (32, 64):
+        m.config.physics.res = res
+        m.build_physics()
+        extents[res] = (m.box[1] - m.box[0]).clone()
+        assert m.cell == pytest.approx(float(extents[res].max()) / res)
+    assert torch.allclose(extents[32], extents[64], rtol=1e-9)
