@@ -187,3 +187,19 @@ def test_reports_hold_only_json_numbers():
     out = finite({"z": math.inf, "v": [1.0, float("nan"), np.float64(2.0)], "a": np.array([np.inf, 3.0]), "s": "x"})
     assert out == {"z": None, "v": [1.0, None, 2.0], "a": [None, 3.0], "s": "x"}
     json.dumps(out, allow_nan=False)
+
+
+@pytest.mark.slow
+def test_table_runs_cases_in_parallel_processes(tmp_path):
+    """--jobs 2: two real (tiny) runs, each in its own spawned process with its own Taichi runtime; their rows and
+    folders land in one table."""
+    import causalgs.discover.table as T
+
+    tiny = DiscoverConfig(res=10, starts=(3e4,), iterations=2, finalists=1, max_effects=1)
+    cfg = T.TableConfig(only=("control: clean",), seeds=2, frames=6, res=10, jobs=2, discover=tiny)
+    rows = T.run_table(tmp_path, cfg)
+    assert sorted(r["seed"] for r in rows) == [0, 1]
+    assert all(not r["verdict"].startswith("failed") for r in rows), [r["verdict"] for r in rows]
+    assert (tmp_path / "control-clean-s0" / "report.json").is_file()
+    assert (tmp_path / "control-clean-s1" / "report.json").is_file()
+    assert json.loads((tmp_path / "table.json").read_text())["summary"]["runs"] == 2
