@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from causalgs.discover.calibrate import UNIT
+from causalgs.discover.calibrate import UNIT, jacobian, positions
 from causalgs.discover.candidates import Candidate
 from causalgs.discover.model import PhysicsModel
 from causalgs.errors import CausalGSError
@@ -39,25 +39,13 @@ def transfer(src: PhysicsModel, theta: torch.Tensor, dst: PhysicsModel, extra: d
 
 
 def _flat(model: PhysicsModel, theta: torch.Tensor, frames) -> np.ndarray:
-    with torch.no_grad():
-        return model.rollout(theta, frames).numpy().reshape(-1) / UNIT
+    return positions(model, theta, frames)
 
 
 def sensitivities(model: PhysicsModel, theta: torch.Tensor, frames, indices=None, base=None) -> np.ndarray:
     """[N, k] finite-difference derivatives of the flattened positions (cm) over ``frames`` with respect to the
-    entries ``indices`` of θ (internal units); ``base`` is the rollout at θ when already known."""
-    indices = list(range(len(theta))) if indices is None else list(indices)
-    x0 = _flat(model, theta, frames) if base is None else base
-    cols = []
-    for i in indices:
-        th = theta.clone()
-        th[i] += STEP
-        try:
-            cols.append((_flat(model, th, frames) - x0) / STEP)
-        except CausalGSError:  # the step blew the simulation up: take the other side
-            th[i] -= 2 * STEP
-            cols.append((x0 - _flat(model, th, frames)) / STEP)
-    return np.stack(cols, axis=1) if cols else np.zeros((len(x0), 0))
+    entries ``indices`` of θ (internal units) at the screen's step; ``base`` is the rollout at θ when known."""
+    return jacobian(model, theta, frames, indices, base, step=STEP)
 
 
 def _residual_after(J: np.ndarray, r: np.ndarray) -> tuple[float, np.ndarray]:

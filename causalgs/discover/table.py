@@ -180,12 +180,14 @@ def _worker(case_name: str, seed: int, cfg: TableConfig, out: str) -> dict:
 
 
 def plan(cfg: TableConfig) -> list[tuple[str, int]]:
-    """The (case, seed) runs of a table, in table order."""
+    """The (case, seed) runs of a table, seed by seed (every case once before any twice: an interrupted table
+    covers every case)."""
     cases = [c for c in CASES if not cfg.only or c.name in cfg.only or c.kind in cfg.only]
+    counts = {c.name: cfg.control_seeds if c.kind == "control" and cfg.control_seeds is not None else cfg.seeds
+              for c in cases}  # fmt: skip
     out = []
-    for case in cases:
-        n = cfg.control_seeds if case.kind == "control" and cfg.control_seeds is not None else cfg.seeds
-        out += [(case.name, seed) for seed in range(cfg.first_seed, cfg.first_seed + n)]
+    for k in range(max(counts.values(), default=0)):
+        out += [(c.name, cfg.first_seed + k) for c in cases if k < counts[c.name]]
     return out
 
 
