@@ -56,7 +56,7 @@ def _starts(text: str) -> tuple[float, ...]:
 @click.option("--starts", default="1e4,1e5", show_default=True,
               help="Starting stiffnesses (Pa) of the base calibration, comma-separated.")
 @click.option("--iterations", type=click.IntRange(1, 500), default=25, show_default=True,
-              help="L-BFGS iterations per calibration.")
+              help="Most Levenberg–Marquardt iterations per calibration (it stops when converged).")
 @precision_option
 @click.option("--json", "as_json", is_flag=True, help="Print report.json to stdout.")
 def discover(source, out, spec, learn, candidates, max_effects, res, starts, iterations, precision, as_json):

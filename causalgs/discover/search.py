@@ -38,7 +38,7 @@ from causalgs.errors import CausalGSError
 class DiscoverConfig:
     res: int = 20  # model grid cells across the box
     starts: tuple[float, ...] = (1e4, 1e5)  # starting stiffnesses of the base calibration (Pa)
-    iterations: int = 25  # L-BFGS iterations per calibration
+    iterations: int = 25  # at most, per calibration (Levenberg–Marquardt stops when converged)
     warm: float = 0.4  # every calibration first fits this leading fraction of the window (0: off)
     finalists: int = 3  # candidates refitted per round, by screen gain
     min_gain: float = 0.02  # screen gain below which a candidate is not refitted
@@ -48,7 +48,7 @@ class DiscoverConfig:
     signature_min: float = 0.5
     signature_tie: float = 0.02
     # Refits whose fit-window error is within this factor of the best one are polished too before the gate: two
-    # confusable candidates are compared at convergence, not at wherever the first L-BFGS run stopped.
+    # confusable candidates are compared at convergence, not at wherever the first run stopped.
     polish_within: float = 1.5
     max_effects: int = 2
     ambiguity_bic: float = 10.0  # ΔBIC within which two passing candidates are not separated
@@ -356,8 +356,8 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
             break
         c, st, unc, v = top
         # Polish the accepted refit (again, if it was polished above): a missing effect and the throw trade off
-        # along a long valley (a lower upward throw against an upward push over a short flight), which L-BFGS
-        # leaves slowly; the value and its interval are quoted from the converged fit.
+        # along a long valley (a lower upward throw against an upward push over a short flight); the value and its
+        # interval are quoted from the converged fit.
         polished = calibrate(st.model, st.fit.theta, iterations=2 * cfg.iterations)
         if polished.loss < st.fit.loss:
             st = _state(st.model, polished)
