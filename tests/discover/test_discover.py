@@ -179,6 +179,19 @@ def test_table_resumes_and_records_failures(tmp_path, monkeypatch):
     assert len(again) == 6 and len(calls) == 6
     saved = json.loads((tmp_path / "table.json").read_text())
     assert saved["summary"]["controls_no_effect"] == 1.0 and saved["summary"]["runs"] == 6
+    again = T.rescore(tmp_path)  # scored anew from the saved reports, nothing run
+    assert len(again) == 6 and len(calls) == 6
+    assert json.loads((tmp_path / "table.json").read_text())["rows"] == saved["rows"]
+
+
+def test_the_repair_is_judged_on_the_error_above_the_noise_floor():
+    from causalgs.discover.table import excess_removed
+
+    assert excess_removed(5e-3, 3e-3, 3e-3) == 1.0
+    assert excess_removed(5e-3, 4e-3, 3e-3) == pytest.approx(1 - 7 / 16)
+    assert excess_removed(5e-3, 6e-3, 3e-3) < 0  # worse than before
+    assert excess_removed(3e-3, 3e-3, 3.5e-3) is None  # the base is at the floor already
+    assert excess_removed(5e-3, 4e-3, None) is None
 
 
 def test_reports_hold_only_json_numbers():
