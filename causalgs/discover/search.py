@@ -140,12 +140,13 @@ def _refit(base: State, s, cfg: DiscoverConfig) -> State:
                 start = s.step.get(p, 0.0)
         th[i] = model.knobs[i].internal(float(start))
     fits = [calibrate(model, th, iterations=cfg.iterations, warm=cfg.warm)]
-    # A second, fresh start: the throw from the first frames and the effects at their spec values, not the base
-    # fit's, which the missing effect has biased (a friction that mimicked a push, a throw that mimicked drag);
-    # the base stiffness, the new parameters as in the first start.
+    # A second, fresh start: the throw from the first frames, the effects at their spec values and the Poisson
+    # ratio at its default, not the base fit's, which the missing effect has biased (a friction that mimicked a
+    # push, a throw that mimicked drag, a Poisson ratio pinned at its bound that mimicked damping); the base
+    # stiffness (elastic fits have several minima in E), the new parameters as in the first start.
     alt = model.initial()
     for i, k in enumerate(model.knobs):
-        if k.kind in ("E", "nu") or k.name in c.params:
+        if k.kind == "E" or k.name in c.params:
             alt[i] = th[i]
     fits.append(calibrate(model, alt, iterations=cfg.iterations, warm=cfg.warm))
     best = min(fits, key=lambda f: f.loss)

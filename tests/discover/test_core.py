@@ -283,3 +283,24 @@ def test_table_plan_runs_twenty_negative_controls():
     assert len(controls) == 20 and len(set(controls)) == 20
     assert len(runs) == 20 + 3 * (len(CASES) - 5)
     assert plan(TableConfig(seeds=2, first_seed=5, only=("force",))) == [("force", 5), ("force", 6)]
+
+
+def test_calibration_method_follows_the_number_of_free_parameters(monkeypatch):
+    """Levenberg–Marquardt for a few parameters, L-BFGS for many (its cost does not grow with them); an unknown
+    method is a one-line error."""
+    import causalgs.discover.calibrate as C
+
+    used = []
+    monkeypatch.setattr(C, "_levenberg_marquardt", lambda *a: used.append("lm") or "lm-fit")
+
+    class Model:
+        obs = None
+
+    theta = torch.zeros(C.LM_MAX_PARAMS + 5, dtype=torch.float64)
+    assert C.calibrate(Model(), theta, frames=[1, 2], free=range(C.LM_MAX_PARAMS)) == "lm-fit"
+    with pytest.raises(CausalGSError, match="not one of"):
+        C.calibrate(Model(), theta, frames=[1, 2], method="newton")
+    monkeypatch.setattr(torch.optim, "LBFGS", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("lbfgs chosen")))
+    with pytest.raises(RuntimeError, match="lbfgs chosen"):
+        C.calibrate(Model(), theta, frames=[1, 2])
+    assert used == ["lm"]
