@@ -44,7 +44,7 @@ class DiscoverConfig:
     min_gain: float = 0.02  # screen gain below which a candidate is not refitted
     # ... and, beyond those, the candidates whose residual signature explains the residual best (at least this
     # share, within ``signature_tie`` of the best candidate's): a base biased towards mimicking the missing effect
-    # (a lower throw for drag) leaves the linearised screen little to gain, but its residual still has the shape
+    # (a lower throw for drag) leaves the linearised screen little to gain, but its residual keeps the effect's shape
     signature_min: float = 0.5
     signature_tie: float = 0.02
     # Refits whose fit-window error is within this factor of the best one are polished too before the gate: two
