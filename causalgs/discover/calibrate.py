@@ -137,8 +137,13 @@ def calibrate(model: PhysicsModel, theta0: torch.Tensor, frames=None, *, iterati
             final = float(mse(model, theta, frames))
         except CausalGSError:
             final = BLOWN
-    E0 = float(model.values(theta0)[model.names[model.base_indices()[0]]]) if model.base_indices() else 0.0
+    E0 = _start_stiffness(model, theta0)
     return Fit(theta, final, count[0], E0)
+
+
+def _start_stiffness(model: PhysicsModel, theta0: torch.Tensor) -> float:
+    """The first body's E at the start (Pa): what a fit is labelled by."""
+    return float(model.values(theta0)[model.names[model.base_indices()[0]]]) if model.base_indices() else 0.0
 
 
 def _levenberg_marquardt(model: PhysicsModel, theta0: torch.Tensor, frames, iterations: int, free) -> Fit:
@@ -146,7 +151,7 @@ def _levenberg_marquardt(model: PhysicsModel, theta0: torch.Tensor, frames, iter
     after a rejected one (a worse or blown-up trial). Stops when an accepted step gains less than 1e-5 of the loss,
     or when no damping finds a better point."""
     idx = list(range(len(theta0))) if free is None else list(free)
-    E0 = float(model.values(theta0)[model.names[model.base_indices()[0]]]) if model.base_indices() else 0.0
+    E0 = _start_stiffness(model, theta0)
     target = np.asarray(model.obs.x[list(frames)], dtype=np.float64).reshape(-1) / UNIT
     theta = theta0.detach().clone()
     try:

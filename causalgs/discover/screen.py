@@ -38,10 +38,6 @@ def transfer(src: PhysicsModel, theta: torch.Tensor, dst: PhysicsModel, extra: d
     return out
 
 
-def _flat(model: PhysicsModel, theta: torch.Tensor, frames) -> np.ndarray:
-    return positions(model, theta, frames)
-
-
 def sensitivities(model: PhysicsModel, theta: torch.Tensor, frames, indices=None, base=None) -> np.ndarray:
     """[N, k] finite-difference derivatives of the flattened positions (cm) over ``frames`` with respect to the
     entries ``indices`` of θ (internal units) at the screen's step; ``base`` is the rollout at θ when known."""
@@ -70,7 +66,7 @@ def screen(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate],
     """Score every candidate (see the module docstring); best first. ``models`` caches candidate models by key."""
     frames = list(frames)
     target = base.obs.x[frames].reshape(-1) / UNIT
-    xb = _flat(base, theta, frames)
+    xb = positions(base, theta, frames)
     r = target - xb
     Jb = sensitivities(base, theta, frames, base.base_indices(), base=xb)
     rb, _ = _residual_after(Jb, r)
@@ -81,7 +77,7 @@ def screen(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate],
         if models is not None:
             models[c.key] = model
         th = transfer(base, theta, model)
-        xc = _flat(model, th, frames)
+        xc = positions(model, th, frames)
         rc = target - xc
         idx = [model.index(p) for p in c.params]
         if c.replaces is not None:  # structural: compare the base-projected residuals with and without the change
@@ -96,7 +92,7 @@ def screen(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate],
             th2[i] = knob.internal(probe)
             start = model.values(th)[p]
             try:
-                cols.append((_flat(model, th2, frames) - xc) / (probe - start))
+                cols.append((positions(model, th2, frames) - xc) / (probe - start))
             except CausalGSError:
                 cols.append(np.zeros_like(xc))
         Jc = np.stack(cols, axis=1)

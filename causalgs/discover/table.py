@@ -314,9 +314,7 @@ def rescore(out) -> list[dict]:
             continue
         rows.append({**score(BY_NAME[r["case"]], read_json(path, "report")), "seed": r["seed"],
                      "seconds": r["seconds"]})  # fmt: skip
-    cfg = saved.get("config", {})
-    write_json(out / "table.json", finite({"rows": _sorted(rows), "summary": summary(rows), "config": cfg}))
-    write_text(out / "table.md", markdown(_sorted(rows)))
+    _write(out, rows, saved.get("config", {}))
     return rows
 
 
@@ -324,9 +322,10 @@ def _sorted(rows: list[dict]) -> list[dict]:
     return sorted(rows, key=lambda r: ([c.name for c in CASES].index(r["case"]), r["seed"]))
 
 
-def _write(out: Path, rows: list[dict], cfg: TableConfig) -> None:
+def _write(out: Path, rows: list[dict], cfg: TableConfig | dict) -> None:
     rows = _sorted(rows)
-    write_json(out / "table.json", finite({"rows": rows, "summary": summary(rows), "config": _cfg_dict(cfg)}))
+    config = cfg if isinstance(cfg, dict) else _cfg_dict(cfg)
+    write_json(out / "table.json", finite({"rows": rows, "summary": summary(rows), "config": config}))
     write_text(out / "table.md", markdown(rows))
 
 
