@@ -140,17 +140,32 @@ def _refit(base: State, s, cfg: DiscoverConfig) -> State:
                 start = s.step.get(p, 0.0)
         th[i] = model.knobs[i].internal(float(start))
     fits = [calibrate(model, th, iterations=cfg.iterations, warm=cfg.warm)]
-    # A second, fresh start: the throw from the first frames, the effects at their spec values and the Poisson
-    # ratio at its default, not the base fit's, which the missing effect has biased (a friction that mimicked a
-    # push, a throw that mimicked drag, a Poisson ratio pinned at its bound that mimicked damping); the base
-    # stiffness (elastic fits have several minima in E), the new parameters as in the first start.
-    alt = model.initial()
-    for i, k in enumerate(model.knobs):
-        if k.kind == "E" or k.name in c.params:
-            alt[i] = th[i]
-    fits.append(calibrate(model, alt, iterations=cfg.iterations, warm=cfg.warm))
+    fits.append(calibrate(model, fresh_start(model, th, c.params, cfg.starts), iterations=cfg.iterations,
+                          warm=cfg.warm))  # fmt: skip
     best = min(fits, key=lambda f: f.loss)
     return _state(model, best)
+
+
+PINNED = 0.02  # a stiffness within this fraction of its log range from a bound is pinned there
+
+
+def fresh_start(model: PhysicsModel, theta: torch.Tensor, params, starts) -> torch.Tensor:
+    """A refit's second start, away from what the missing effect has biased in the base fit: the throw from the
+    first frames, the effects at their spec values and the Poisson ratio at its default (a friction that mimicked a
+    push, a throw that mimicked drag, a Poisson ratio pinned at its bound that mimicked damping); the candidate's
+    new ``params`` as in ``theta``. The stiffness stays the base fit's (elastic fits have several minima in E, and
+    the base found the right one) unless it is pinned at a bound of its range — a block gone as soft as allowed to
+    mimic plastic flow — and then restarts from the middle (geometric mean) of the base calibration's ``starts``."""
+    mid = math.exp(float(np.mean(np.log(starts))))
+    alt = model.initial(E=mid)
+    for i, k in enumerate(model.knobs):
+        if k.name in params:
+            alt[i] = theta[i]
+        elif k.kind == "E":
+            s = float(torch.sigmoid(theta[i]))
+            if PINNED < s < 1 - PINNED:
+                alt[i] = theta[i]
+    return alt
 
 
 def _uncertainty(state: State, params, cfg: DiscoverConfig) -> dict:

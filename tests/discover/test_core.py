@@ -304,3 +304,24 @@ def test_calibration_method_follows_the_number_of_free_parameters(monkeypatch):
     with pytest.raises(RuntimeError, match="lbfgs chosen"):
         C.calibrate(Model(), theta, frames=[1, 2])
     assert used == ["lm"]
+
+
+def test_a_refit_starts_afresh_from_what_the_missing_effect_biased():
+    """The second refit start keeps the candidate's new parameters and a base stiffness inside its range, but resets
+    the Poisson ratio, the throw, and a stiffness pinned at a bound of its range (a block gone as soft as allowed to
+    mimic plastic flow) to the middle of the base calibration's starts."""
+    from causalgs import _ti
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.search import fresh_start
+
+    _ti.init("cpu", "float32")
+    m = PhysicsModel(_flight(), "gravity;walls;linear_drag:c=0.0", learn=("linear_drag.c",), res=16)
+    th = m.initial(E=2.1e3, nu=0.45, effects={"linear_drag.c": 0.7})
+    th[m.index("cube.v0[0]")] += 0.3
+    vals = m.values(fresh_start(m, th, ["linear_drag.c"], starts=(1e4, 1e5)))
+    assert math.isclose(vals["cube.E"], math.sqrt(1e4 * 1e5), rel_tol=1e-6)  # pinned at the 2e3 bound: reset
+    assert math.isclose(vals["cube.nu"], 0.3, rel_tol=1e-6)
+    assert math.isclose(vals["cube.v0[0]"], 0.4, rel_tol=1e-6)  # the throw from the first frames
+    assert math.isclose(vals["linear_drag.c"], 0.7, rel_tol=1e-6)
+    th = m.initial(E=3e4, nu=0.45)
+    assert math.isclose(m.values(fresh_start(m, th, [], starts=(1e4, 1e5)))["cube.E"], 3e4, rel_tol=1e-6)
