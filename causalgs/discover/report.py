@@ -117,6 +117,16 @@ def _mm(v: float | None) -> str:
     return "n/a" if v is None or not math.isfinite(v) else f"{1000 * v:.2f} mm"
 
 
+def _gap(gap) -> str:
+    """A held-out difference against the first-named candidate with its paired-bootstrap 95% interval."""
+    if not gap:
+        return ""
+    lo, hi = gap
+    if lo == 0.0 and hi == 0.0:
+        return ""
+    return f"; its excess over the first, 95% paired bootstrap: [{lo:+.3g}, {hi:+.3g}] cm²"
+
+
 def markdown(report: dict) -> str:
     """The report for people: verdict first, then the law with its interval, the evidence, the runners-up, the base
     parameters before and after, and the errors."""
@@ -134,10 +144,16 @@ def markdown(report: dict) -> str:
                   f"−{100 * (1 - math.sqrt(max(0.0, 1 - d['evidence']['future_drop']))):.0f}%; "
                   f"ΔBIC {d['evidence']['delta_bic']:+.1f}; "
                   + ", ".join(f"{p} at {z:.1f} SE" for p, z in d["evidence"]["z"].items())]  # fmt: skip
+            for r in d.get("runners_up", []):
+                if r["passed"]:
+                    L.append(f"  - also passed, told apart: `{r['effect']}` (ΔBIC {r['delta_bic']:+.1f}, held-out "
+                             f"MSE {r['future_mse_cm2']:.3g} cm²{_gap(r.get('future_gap_cm2'))})")  # fmt: skip
         L.append("")
     elif report["ambiguous"]:
         L += ["## Ambiguous: the data does not separate these", ""]
-        L += [f"- {a['law']} (held-out MSE {a['future_mse_cm2']:.3g} cm²)" for a in report["ambiguous"]]
+        L += [f"- {a['law']} (ΔBIC {a.get('delta_bic', float('nan')):+.1f}, held-out MSE "
+              f"{a['future_mse_cm2']:.3g} cm²{_gap(a.get('future_gap_cm2'))})"
+              for a in report["ambiguous"]]  # fmt: skip
         L.append("")
     elif report["verdict"] == "unexplained discrepancy":
         ratio = eb["fit_rms_m"] / report["floor_rms_m"]

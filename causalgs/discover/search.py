@@ -5,7 +5,8 @@ name, repair, repeat.
 
 - ``"discovered"``: one or more named effects passed the gate, in the order they were added;
 - ``"ambiguous"``: two or more candidates passed in the same round and the data does not separate them (their
-  held-out errors and information criteria are within the margins below); all are listed as the ambiguity set;
+  information criteria are within a margin, and their held-out errors within a margin or within the refits' own
+  uncertainty, a paired bootstrap); all are listed as the ambiguity set;
 - ``"no missing effect"``: no candidate passed and a small free residual force does not help either;
 - ``"unexplained discrepancy"``: no candidate passed, but the base stays well above the noise floor on the fit
   window or, further still, on the held-out frames
@@ -52,7 +53,9 @@ class DiscoverConfig:
     polish_within: float = 1.5
     max_effects: int = 2
     ambiguity_bic: float = 10.0  # ΔBIC within which two passing candidates are not separated
-    ambiguity_future: float = 0.15  # relative held-out error within which two passing candidates tie
+    # relative held-out error within which two passing candidates tie (beyond it, they still tie where the paired
+    # bootstrap of their held-out difference reaches zero)
+    ambiguity_future: float = 0.15
     # No candidate passed but the base stays this many times above the noise floor: the excess is rigid motion of
     # the bodies (the floor is what no rigid motion removes), which a free force per body and frame would remove.
     unexplained_floor: float = 1.5
@@ -71,6 +74,11 @@ class State:
     train: float  # mse over the fit window (cm²)
     future: float  # mse over the held-out frames (cm²)
     sim: np.ndarray  # [T-1, P, 3] rollout at every frame after the first (m)
+    starts: list = field(default_factory=list)  # a refit's calibrations from its several starts (Fit)
+    # The held-out mean squared error (cm²) of each block-bootstrap resample of the fit (see ``_uncertainty``):
+    # how far the future error would move had the fit window's noise been another draw. Resamples share their
+    # blocks across candidates (one seed), so two candidates' samples are paired.
+    future_samples: np.ndarray | None = None
 
 
 def _state(model: PhysicsModel, fit: Fit) -> State:
@@ -143,7 +151,9 @@ def _refit(base: State, s, cfg: DiscoverConfig) -> State:
     fits.append(calibrate(model, fresh_start(model, th, c.params, cfg.starts), iterations=cfg.iterations,
                           warm=cfg.warm))  # fmt: skip
     best = min(fits, key=lambda f: f.loss)
-    return _state(model, best)
+    st = _state(model, best)
+    st.starts = fits
+    return st
 
 
 PINNED = 0.02  # a stiffness within this fraction of its log range from a bound is pinned there
@@ -172,10 +182,16 @@ def _uncertainty(state: State, params, cfg: DiscoverConfig) -> dict:
     """Bootstrap intervals and z-scores of ``params`` at the refit (see :mod:`causalgs.discover.gate`)."""
     model, obs = state.model, state.model.obs
     fr = fit_frames(model)
+    fut = list(range(obs.observed, len(obs.times)))
     th = state.fit.theta
-    J = sensitivities(model, th, fr)
+    J_all = sensitivities(model, th, fr + fut)  # the held-out rows cost no extra rollout
+    n_fit = len(fr) * obs.points * 3
+    J, J_fut = J_all[:n_fit], J_all[n_fit:]
     r = (obs.x[fr] - state.sim[[f - 1 for f in fr]]).reshape(-1) / UNIT
     dev = block_bootstrap(J, r, len(fr), cfg.gate)  # [S, k] in internal units
+    if fut:  # each resample's fit, carried to the held-out frames (linearised)
+        miss = (state.sim[[f - 1 for f in fut]] - obs.x[fut]).reshape(-1) / UNIT
+        state.future_samples = (((miss[None] + (dev - dev.mean(0)) @ J_fut.T) ** 2).mean(1))
     vals = model.values(th)
     out = {}
     for p in params:
@@ -192,6 +208,28 @@ def _uncertainty(state: State, params, cfg: DiscoverConfig) -> dict:
                   # No spread at all means the data does not move the parameter (no sensitivity, or pinned at a
                   # bound): nothing is known about it, so it is not significant.
                   "z": abs(vals[p] - off) / se if se > 0 else 0.0, "samples": samples - vals[p]}  # fmt: skip
+    return out
+
+
+PROFILE_95 = 3.84  # χ²₁ at 95%: twice the log-likelihood a parameter's 95% profile interval allows to be lost
+
+
+def widen(unc: dict, state: State, n_eff: int) -> dict:
+    """Widen the bootstrap intervals of ``unc`` to cover every refit start that the data cannot tell from the best
+    fit: a start whose fit-window error is worse by less than the 95% profile-likelihood threshold
+    (n_eff·ln(mse/mse_best) ≤ 3.84, Gaussian residuals over the effective sample size). The bootstrap sees the
+    measurement noise around one optimum; elastic refits have rough valleys and neighbouring optima a few percent
+    apart in the parameter, which are as consistent with the data and belong in the interval. Each entry gains
+    ``starts_within``: how many starts that was."""
+    model, best = state.model, state.fit.loss
+    near = [f for f in state.starts if n_eff * math.log(max(f.loss, 1e-300) / best) <= PROFILE_95]
+    values = [model.values(f.theta) for f in near]
+    out = {}
+    for p, u in unc.items():
+        lo, hi = u["interval"]
+        for v in values:
+            lo, hi = min(lo, v[p]), max(hi, v[p])
+        out[p] = {**u, "interval": [lo, hi], "starts_within": len(near)}
     return out
 
 
@@ -221,6 +259,30 @@ def significance(unc: dict) -> dict[str, float]:
         spread = float(along.std())
         out[name] = norm / spread if spread > 0 else 0.0
     return out
+
+
+def future_gap(a: State, b: State, level: float = 0.95) -> tuple[float, float] | None:
+    """The ``level`` interval of b's held-out error minus a's (cm²) over their paired bootstrap resamples (None
+    when either has none): the held-out comparison of two refits with the uncertainty of the refits themselves."""
+    if a.future_samples is None or b.future_samples is None or len(a.future_samples) != len(b.future_samples):
+        return None
+    d = b.future_samples - a.future_samples
+    q = (1 - level) / 2
+    return float(np.quantile(d, q)), float(np.quantile(d, 1 - q))
+
+
+def _tied(top, other, cfg: DiscoverConfig) -> bool:
+    """Two passing candidates the data does not separate: their information criteria within
+    ``cfg.ambiguity_bic``, and the held-out frames preferring ``top`` by no more than ``cfg.ambiguity_future``
+    (relative) or not beyond the refits' own uncertainty (the paired bootstrap interval of the difference reaches
+    zero). The margin covers what the bootstrap does not see: a correct model's held-out error scatters above the
+    floor with the noisy rest shape it starts from (negative controls: 4.1 against 3.5 mm)."""
+    if abs(other[3].checks["delta_bic"] - top[3].checks["delta_bic"]) >= cfg.ambiguity_bic:
+        return False
+    if other[1].future <= top[1].future * (1 + cfg.ambiguity_future):
+        return True
+    gap = future_gap(top[1], other[1])
+    return gap is not None and gap[0] <= 0.0
 
 
 def pick_finalists(screened, signatures: dict, cfg: DiscoverConfig) -> list:
@@ -335,6 +397,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
                 polished = calibrate(st_i.model, st_i.fit.theta, iterations=2 * cfg.iterations)
                 if polished.loss < st_i.fit.loss:
                     refits[i] = (c_i, _state(st_i.model, polished))
+                    refits[i][1].starts = st_i.starts
         for _, st in refits:
             best_train = min(best_train, st.train)
         n_eff = effective_n(len(fit_frames(current.model)), obs.bodies, obs.points, cfg.gate.clusters_per_body)
@@ -358,16 +421,13 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
             break
         passed.sort(key=lambda t: t[1].future)
         top = passed[0]
-        ties = [
-            p for p in passed[1:]
-            if abs(p[3].checks["delta_bic"] - top[3].checks["delta_bic"]) < cfg.ambiguity_bic
-            and p[1].future <= top[1].future * (1 + cfg.ambiguity_future)
-        ]  # fmt: skip
+        ties = [p for p in passed[1:] if _tied(top, p, cfg)]
         if ties:
             report["ambiguous"] = [
-                {"effect": c.key, "law": _law(c, unc), "future_mse_cm2": st.future}
-                for c, st, unc, _ in [top, *ties]
-            ]
+                {"effect": c.key, "law": _law(c, unc), "future_mse_cm2": st.future,
+                 "delta_bic": v.checks["delta_bic"], "future_gap_cm2": future_gap(top[1], st)}
+                for c, st, unc, v in [top, *ties]
+            ]  # fmt: skip
             current = top[1]
             break
         c, st, unc, v = top
@@ -376,8 +436,9 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         # interval are quoted from the converged fit.
         polished = calibrate(st.model, st.fit.theta, iterations=2 * cfg.iterations)
         if polished.loss < st.fit.loss:
-            st = _state(st.model, polished)
+            st, st.starts = _state(st.model, polished), st.starts
             unc = _uncertainty(st, c.params, cfg)
+        unc = widen(unc, st, n_eff)
         scores = {r["effect"]: r for r in entry["refits"] if "error" not in r}
         report["discovered"].append({
             "effect": c.key,
@@ -390,8 +451,9 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
                          "z": significance(unc)},
             "runners_up": [{"effect": o.key, "passed": scores[o.key]["passed"],
                             "future_mse_cm2": scores[o.key]["future_mse_cm2"],
-                            "delta_bic": scores[o.key]["checks"]["delta_bic"]}
-                           for o, _ in refits if o.key != c.key and o.key in scores],
+                            "delta_bic": scores[o.key]["checks"]["delta_bic"],
+                            "future_gap_cm2": future_gap(st, o_st)}
+                           for o, o_st in refits if o.key != c.key and o.key in scores],
             "base_before": current.model.values(current.fit.theta),
             "base_after": st.model.values(st.fit.theta),
             "spec": st.model.spec_at(st.fit.theta),
@@ -406,6 +468,12 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         report["verdict"] = "unexplained discrepancy"
     else:
         report["verdict"] = "no missing effect"
+    if current is not first:
+        # A missing effect that deforms the bodies (plastic flow) leaves a residual no rigid motion removes, so the
+        # base's floor overstates the noise; the repaired model's is the better estimate (either bounds it above).
+        fr = fit_frames(current.model)
+        report["floor_rms_base_m"] = floor_coord
+        report["floor_rms_m"] = min(floor_coord, max(R.rigid_floor(current.sim[[f - 1 for f in fr]], obs, fr), sigma))
     report["error_before"] = {"fit_rms_m": math.sqrt(first.train) * UNIT,
                               "future_rms_m": math.sqrt(first.future) * UNIT}  # fmt: skip
     report["error_after"] = {"fit_rms_m": math.sqrt(current.train) * UNIT,

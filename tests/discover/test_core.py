@@ -325,3 +325,50 @@ def test_a_refit_starts_afresh_from_what_the_missing_effect_biased():
     assert math.isclose(vals["linear_drag.c"], 0.7, rel_tol=1e-6)
     th = m.initial(E=3e4, nu=0.45)
     assert math.isclose(m.values(fresh_start(m, th, [], starts=(1e4, 1e5)))["cube.E"], 3e4, rel_tol=1e-6)
+
+
+def test_intervals_cover_refit_starts_the_data_cannot_tell_apart():
+    """A refit start whose error is within the 95% profile-likelihood threshold of the best widens the interval to
+    its value; a start clearly worse does not."""
+    from types import SimpleNamespace
+
+    from causalgs.discover.calibrate import Fit
+    from causalgs.discover.search import PROFILE_95, widen
+
+    n_eff = 500
+    model = SimpleNamespace(values=lambda th: {"drag.c": float(th[0])})
+    close = Fit(torch.tensor([0.70], dtype=torch.float64), 1.0 * math.exp(0.5 * PROFILE_95 / n_eff), 1, 1e4)
+    far = Fit(torch.tensor([0.20], dtype=torch.float64), 1.0 * math.exp(3 * PROFILE_95 / n_eff), 1, 1e5)
+    best = Fit(torch.tensor([0.6], dtype=torch.float64), 1.0, 1, 1e4)
+    state = SimpleNamespace(model=model, fit=best, starts=[close, far])
+    unc = {"drag.c": {"value": 0.6, "interval": [0.58, 0.62], "z": 30.0}}
+    out = widen(unc, state, n_eff)["drag.c"]
+    assert out["interval"] == [0.58, 0.70] and out["starts_within"] == 1 and out["z"] == 30.0
+    assert unc["drag.c"]["interval"] == [0.58, 0.62]  # the input is not changed
+
+
+def test_two_passing_candidates_tie_unless_the_data_separates_them():
+    """Ambiguous when the information criteria are close and the held-out frames prefer the first by less than the
+    margin or by less than the paired bootstrap of the refits' own uncertainty; told apart otherwise."""
+    from types import SimpleNamespace
+
+    from causalgs.discover.search import DiscoverConfig, _tied, future_gap
+
+    cfg = DiscoverConfig()
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0.0, 0.01, 400)
+
+    def cand(bic, future, spread):
+        st = SimpleNamespace(future=future, future_samples=future + spread * noise)
+        return (None, st, None, SimpleNamespace(checks={"delta_bic": bic}))
+
+    top = cand(-120.0, 0.10, 1.0)
+    assert not _tied(top, cand(-100.0, 0.10, 1.0), cfg)  # the fit window separates them
+    assert _tied(top, cand(-118.0, 0.11, 1.0), cfg)  # within the 15% margin
+    assert not _tied(top, cand(-118.0, 0.14, 1.0), cfg)  # 40% worse, the bootstrap spread is small
+    wide = cand(-118.0, 0.14, 6.0)  # same excess, but the refits are uncertain: the paired interval reaches zero
+    assert future_gap(top[1], wide[1])[0] < 0 < future_gap(top[1], wide[1])[1]
+    assert _tied(top, wide, cfg)
+    paired = cand(-118.0, 0.14, 6.0)
+    top_wide = cand(-120.0, 0.10, 6.0)  # both move together with the shared resamples: the gap is certain
+    assert future_gap(top_wide[1], paired[1])[0] > 0 and not _tied(top_wide, paired, cfg)

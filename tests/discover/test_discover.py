@@ -68,6 +68,7 @@ def test_a_hidden_drag_is_found_named_and_repaired(ti32_runtime, tmp_path):
     assert lo < c < hi and hi - lo < 0.5 * C_TRUE
     assert found["law"].startswith("linear drag: a = −c·v, c = ")
     assert rep["error_after"]["future_rms_m"] < 0.5 * rep["error_before"]["future_rms_m"]
+    assert NOISE <= rep["floor_rms_m"] <= rep["floor_rms_base_m"]  # the repaired model's floor, when lower
     assert rep["disagreement"]["first_departure"] is not None
     # The signature that names it: the residual acceleration is explained by −v better than by a constant.
     sig = rep["disagreement"]["signatures"]
