@@ -208,9 +208,8 @@ def synthesize(
         "rest_noise": rest_noise,
         "seed": seed,
     }
-    ground = float(eff.get("ground", "d")[0]) if "ground" in eff.names() else None
-    if ground is None and "ground_sticky" in eff.names():
-        ground = float(eff.get("ground_sticky", "d")[0])
+    planes = [name for name in ("ground", "ground_sticky", "floor") if name in eff.names()]
+    ground = float(eff.get(planes[0], "d")[0]) if planes else None
     dens = float(np.average([b.density for b in setup.bodies], weights=volume))
     return Observation(
         times=np.arange(frames) / fps, x=x, vol=np.concatenate(vol), body=np.concatenate(body),

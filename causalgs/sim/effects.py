@@ -5,7 +5,9 @@ An effect is a ``ti.func`` registered under a name with its parameters and a *st
 - ``FORCE`` and ``BOUNDARY`` terms change the grid velocity after the momentum division (gravity, a force field,
   drag; ground planes, domain walls), forces first;
 - ``PLASTIC`` terms return-map the trial deformation gradient (plasticity);
-- ``STRESS`` terms add to the material's Kirchhoff stress (material damping).
+- ``STRESS`` terms add to the material's Kirchhoff stress (material damping);
+- ``PARTICLE`` terms change a particle's velocity before it is scattered to the grid (a floor met by the particles
+  themselves, whose contact does not depend on the grid spacing).
 
 An :class:`Effects` object holds the chosen terms; the kernels receive its :class:`Stages` as a static argument and
 apply the terms of each stage in a ``ti.static`` loop (no if-chain over effect names). A new effect is one decorated
@@ -42,7 +44,8 @@ WALL_BAND = 3
 #   FORCE, BOUNDARY: f(v, x, I, dt, dx, p, res) -> v         grid velocity after the momentum division
 #   PLASTIC:         f(F, mu, lam, p) -> F                     return mapping of the trial deformation gradient
 #   STRESS:          f(F, C, mu, lam, p) -> tau                Kirchhoff stress added to the material's
-FORCE, BOUNDARY, PLASTIC, STRESS = 0, 1, 2, 3
+#   PARTICLE:        f(v, x, dt, p) -> v                       a particle's velocity before P2G
+FORCE, BOUNDARY, PLASTIC, STRESS, PARTICLE = 0, 1, 2, 3, 4
 GRID_STAGES = (FORCE, BOUNDARY)
 
 # |v| is taken as sqrt(v·v + EPS²), so norms of zero vectors have a finite (zero) derivative.
@@ -207,6 +210,26 @@ def ground(v, x, I, dt, dx, p: ti.template(), res: ti.template()):
 
 
 @register(
+    "floor",
+    _plane_params(mu=True),
+    order=PARTICLE,
+    doc="ground plane n·x = d met by the particles themselves rather than by grid nodes, so that bodies touch it where "
+    "their particles are, whatever the grid spacing (a grid-node plane stops a body up to about a cell and a half "
+    "early): a particle that would cross the plane within the substep gets the normal velocity that puts it on the "
+    "plane (one already below is pushed out), and loses mu times that change of tangential speed (Coulomb)",
+)
+@ti.func
+def floor(v, x, dt, p: ti.template()):
+    n = _vec(p, 0)
+    n = n / _norm(n)
+    vn = v.dot(n)
+    push = ti.max((p[3] - n.dot(x)) / dt - vn, 0.0)  # the normal velocity change that keeps it out of the plane
+    vt = v - vn * n
+    scale = ti.max(0.0, 1.0 - p[4] * push / _norm(vt))
+    return scale * vt + (vn + push) * n
+
+
+@register(
     "ground_sticky",
     _plane_params(mu=False),
     order=BOUNDARY,
@@ -314,6 +337,8 @@ class Stages:
         self.grid_terms = [(d, _param_field(d.name)) for d in defs if d.order in GRID_STAGES]
         self.plastic_terms = [(d, _param_field(d.name)) for d in defs if d.order == PLASTIC]
         self.stress_terms = [(d, _param_field(d.name)) for d in defs if d.order == STRESS]
+        self.particle_terms = [(d, _param_field(d.name)) for d in defs if d.order == PARTICLE]
+        self.has_particle = bool(self.particle_terms)
 
     @ti.func
     def apply(self, v, x, I, dt, dx, res: ti.template()):
@@ -327,6 +352,13 @@ class Stages:
         out = F
         for k in ti.static(range(len(self.plastic_terms))):
             out = self.plastic_terms[k][0].func(out, mu, lam, self.plastic_terms[k][1])
+        return out
+
+    @ti.func
+    def particle(self, v, x, dt):
+        out = v
+        for k in ti.static(range(len(self.particle_terms))):
+            out = self.particle_terms[k][0].func(out, x, dt, self.particle_terms[k][1])
         return out
 
     @ti.func

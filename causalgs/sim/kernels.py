@@ -5,7 +5,7 @@ Layout follows taichi's mpm88 and difftaichi's diffmpm: quadratic B-spline weigh
 ``x[p, s]``, ``v[p, s]``, ``C[p, s]``, ``F[p, s]`` (the store's per-row axis). A substep reads slot ``s`` and writes
 slot ``s + 1``, so no kernel reads a field and then overwrites it (Taichi's global data access rule for autodiff):
 
-    particle_box(s) → clear_grid → stress(s) → p2g(s) → grid_update → g2p(s)
+    particle_box(s) → clear_grid → stress(s) → [particle_terms(s)] → p2g(s) → grid_update → g2p(s)
 
 ``stress`` (per particle: deformation update, plasticity, stress) is separate from ``p2g`` (the stencil scatter):
 two small kernels compile much faster than one large one, most of all their gradient kernels, and the scatter does
@@ -111,6 +111,23 @@ def stress(
         F[p, s + 1] = F_new
         tau = kirchhoff(F_new, mu, lam, model) + effects.stress(F_new, C[p, s], mu, lam)
         affine[p] = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + (density[p] * vol[p]) * C[p, s]
+
+
+@ti.kernel
+def particle_terms(x: ti.template(), v: ti.template(), vc: ti.template(), s: ti.i32, n: ti.i32, dt: float,
+                   effects: ti.template()):  # fmt: skip
+    """Per particle: its velocity after the particle-stage effects (contact met by the particles themselves) into
+    ``vc[p, s]``, which P2G then scatters in place of ``v[p, s]`` (a separate field: no kernel overwrites what it
+    reads). Its gradient is Taichi's autodiff."""
+    for p in range(n):
+        vc[p, s] = effects.particle(v[p, s], x[p, s], dt)
+
+
+@ti.kernel
+def zero_slot_grad(f: ti.template(), s: ti.i32, n: ti.i32):
+    """Zero the adjoint of slot ``s`` of a substep-indexed vector field (once the kernels that read it have run)."""
+    for p in range(n):
+        f.grad[p, s] = ti.Vector.zero(float, 3)
 
 
 @ti.kernel

@@ -53,6 +53,8 @@ def segment_specs(segment: int) -> tuple[FieldSpec, ...]:
         FieldSpec("v_seg", (3,), per_row=k, doc="velocity per substep slot"),
         FieldSpec("C_seg", (3, 3), per_row=k, doc="APIC affine matrix per substep slot"),
         FieldSpec("F_seg", (3, 3), per_row=k, fill="identity", doc="deformation gradient per substep slot"),
+        FieldSpec("vc_seg", (3,), per_row=k, doc="velocity after the particle-stage effects per substep slot (what "
+                  "P2G scatters when there are such effects)"),
     )
 
 
@@ -211,7 +213,12 @@ class Simulator:
 
     def _p2g_args(self, s: int) -> tuple:
         st, g, geo = self.store, self.grid, self.geo
-        return (st.x_seg, st.v_seg, st.vol, st.density, st.mpm_affine, g.v_in, g.m, s, st.n, geo.lo, geo.inv_dx)
+        v = st.vc_seg if self.effects.kernel.has_particle else st.v_seg
+        return (st.x_seg, v, st.vol, st.density, st.mpm_affine, g.v_in, g.m, s, st.n, geo.lo, geo.inv_dx)
+
+    def _particle_args(self, s: int, dt: float) -> tuple:
+        st = self.store
+        return (st.x_seg, st.v_seg, st.vc_seg, s, st.n, dt, self.effects.kernel)
 
     def _grid(self, s: int, dt: float) -> None:
         """The grid of substep ``s``: the particles' box, clear, stress, P2G, grid update."""
@@ -219,6 +226,8 @@ class Simulator:
         kernels.particle_box(self.store.x_seg, s, self.store.n, geo.lo, geo.inv_dx, geo.shape, g.box)
         kernels.clear_grid(g.v_in, g.m, g.v_out, g.box)
         kernels.stress(*self._stress_args(s, dt))
+        if self.effects.kernel.has_particle:
+            kernels.particle_terms(*self._particle_args(s, dt))
         kernels.p2g(*self._p2g_args(s))
         kernels.grid_update(g.v_in, g.m, g.v_out, dt, geo.lo, geo.dx, self.effects.kernel, g.box)
 
@@ -376,7 +385,7 @@ class Simulator:
         st = self.store
         n = st.n
         seg_names = [f"{k}_seg" for k in STATE]
-        st.zero_grad([*seg_names, "E", "nu", "density"])
+        st.zero_grad([*seg_names, "vc_seg", "E", "nu", "density"])
         self.effects.upload()
         self.effects.zero_grad()
         seeds = {k: v for k, v in grads.items() if v is not None}
@@ -425,6 +434,9 @@ class Simulator:
         kernels.g2p_adjoint(st.x_seg, st.v_seg, st.C_seg, g.v_out, s, st.n, dt, geo.lo, geo.inv_dx)
         kernels.grid_update.grad(g.v_in, g.m, g.v_out, dt, geo.lo, geo.dx, self.effects.kernel, g.box)
         kernels.p2g_adjoint(*self._p2g_args(s))
+        if self.effects.kernel.has_particle:
+            kernels.particle_terms.grad(*self._particle_args(s, dt))
+            kernels.zero_slot_grad(st.vc_seg, s, st.n)
         kernels.stress.grad(*self._stress_args(s, dt))
 
 

@@ -10,7 +10,7 @@ import itertools
 
 import torch
 
-from causalgs.sim.effects import EPS, GRID_STAGES, REGISTRY, WALL_BAND, parse_spec
+from causalgs.sim.effects import EPS, GRID_STAGES, PARTICLE, REGISTRY, WALL_BAND, parse_spec
 from causalgs.sim.materials import POLAR_ITERS, lame
 
 
@@ -94,6 +94,23 @@ def _apply_effects(v: torch.Tensor, x: torch.Tensor, I: torch.Tensor, dt: float,
     return v
 
 
+def _particle_effects(v: torch.Tensor, x: torch.Tensor, dt: float, effects) -> torch.Tensor:
+    for name, p in effects:
+        if REGISTRY[name].order != PARTICLE:
+            continue
+        if name == "floor":
+            n = _vec(p, "n", v.dtype)
+            n = n / torch.sqrt((n * n).sum() + EPS * EPS)
+            vn = (v @ n)[:, None]
+            push = torch.clamp((p["d"][0] - (x @ n)[:, None]) / dt - vn, min=0.0)
+            vt = v - vn * n
+            scale = torch.clamp(1.0 - p["mu"][0] * push / _norm(vt), min=0.0)
+            v = scale * vt + (vn + push) * n
+        else:
+            raise ValueError(f"no reference for effect '{name}'")
+    return v
+
+
 def _project(F: torch.Tensor, mu: torch.Tensor, effects) -> torch.Tensor:
     for name, p in effects:
         if name == "plasticity":
@@ -135,7 +152,7 @@ def substep(state: dict, mat: dict, dt: float, lo, dx: float, shape, model: str,
     tau = kirchhoff(F_new, mu, lam, model) + _extra_stress(F_new, C, effects)
     mass = mat["density"] * mat["vol"]
     affine = (-dt * mat["vol"] * 4.0 * inv_dx * inv_dx)[:, None, None] * tau + mass[:, None, None] * C
-    mv = mass[:, None] * v
+    mv = mass[:, None] * _particle_effects(v, x, dt, effects)
 
     ncell = int(shape[0] * shape[1] * shape[2])
     grid_p = torch.zeros(ncell, 3, dtype=dtype)

@@ -113,8 +113,9 @@ def _sample(bodies: list[Body], spacing: float):
 
 
 def _floor(effects, half: float) -> Mesh | None:
-    """A checkered square on the ground plane of a ``ground`` / ``ground_sticky`` term whose normal is +z."""
-    for name in ("ground", "ground_sticky"):
+    """A checkered square on the ground plane of a ``ground`` / ``ground_sticky`` / ``floor`` term whose normal is
+    +z."""
+    for name in ("ground", "ground_sticky", "floor"):
         if name in effects.names():
             n = effects.get(name, "n")
             n = n / np.linalg.norm(n)

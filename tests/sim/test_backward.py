@@ -1,10 +1,11 @@
 """The checkpointed backward and its torch boundary against float64 finite differences and a full tape.
 
 One scene exercises every registered effect at once (each with a parameter that matters): an elastoplastic block
-thrown against a tilted Coulomb ground and a sticky side plane, under gravity, a force field, linear and quadratic
-drag and material damping. Its rollout spans several checkpoint segments; a loss on positions, velocities and
-deformation gradients at three output times is differentiated with respect to x0, v0, E, nu, density and every
-effect parameter. The substep is fixed (``SimConfig.dt``) so that finite differences see the same schedule.
+thrown against a tilted Coulomb ground (on grid nodes), a tilted Coulomb floor (met by the particles) and a sticky
+side plane, under gravity, a force field, linear and quadratic drag, an attractor and material damping. Its rollout
+spans several checkpoint segments; a loss on positions, velocities and deformation gradients at three output times
+is differentiated with respect to x0, v0, E, nu, density and every effect parameter. The substep is fixed
+(``SimConfig.dt``) so that finite differences see the same schedule.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ D = torch.float64
 SPEC = (
     "gravity:g=0.5,-0.3,-9.8;force:b=0.4,0.8,0.3;linear_drag:c=0.6;quadratic_drag:k=0.8;"
     "ground:n=0.1,0.05,1:d=0.12:mu=0.4;ground_sticky:n=-1,0,0.02:d=-0.575;damping:eta=40;"
-    "plasticity:yield_stress=300;attractor:k=2.0:c=0.5,0.45,0.3;walls"
+    "plasticity:yield_stress=300;attractor:k=2.0:c=0.5,0.45,0.3;floor:n=-0.05,0.1,1:d=0.165:mu=0.3;walls"
 )
 TIMES = (0.012, 0.03, 0.042)  # with dt = 3 ms: 14 substeps, 7 segments of 2 (outputs inside and at segment ends)
 DT = 3e-3

@@ -169,14 +169,36 @@ def test_block_dropped_on_the_ground_comes_to_rest(ti64, mk):
     assert height > 0.8 * rest, "the block should stand on the ground, not flatten into it"
 
 
+def test_a_block_rests_on_the_particle_floor_at_the_plane(ti64, mk):
+    """A floor met by the particles stops a dropped block with its lowest particles on the plane (within a tenth of
+    a cell), where a grid-node plane holds them up to a cell and a half off it, by an amount that changes with the
+    grid spacing. (Without the grid's contact layer less is damped: the block still wobbles a little.)"""
+    x0 = mk.block((0.5, 0.5, 0.5))
+    store = mk.store(len(x0))
+    mk.fill(store, x0)
+    sim = Simulator(store, SimConfig(res=16, effects="gravity;floor:d=0.3:mu=0.5;walls"))
+    sim.set_state(x0, torch.zeros(len(x0), 3, dtype=torch.float64))
+    out = sim.advance(40, 25.0)
+    assert float(_com_velocity(out).norm()) < 0.02, "the block should be at rest after 1.6 s"
+    bottom = float(out["x"][:, 2].min())
+    assert abs(bottom - 0.3) < 0.1 * mk.DX, f"resting bottom at z = {bottom:.4g}, the floor is at 0.3"
+    height = float(out["x"][:, 2].max() - out["x"][:, 2].min())
+    rest = float(x0[:, 2].max() - x0[:, 2].min())
+    assert height > 0.8 * rest, "the block should stand on the floor, not flatten into it"
+
+
+@pytest.mark.parametrize("plane", ["ground", "floor"])
 @pytest.mark.parametrize("mu", [0.2, 0.4])
-def test_coulomb_ground_decelerates_at_mu_g(ti64, mk, mu):
+def test_coulomb_ground_decelerates_at_mu_g(ti64, mk, mu, plane):
     """A stiff block sliding on a Coulomb ground slows at mu·g (within 10%) until it stops. (A soft one rocks as it
     slides, so its normal force, and with it the friction, oscillates about m·g.)"""
-    x0 = mk.block((0.25, 0.5, 0.2 + 3 * mk.DX / 4 + 0.01))
+    # The floor meets the particles, so it is placed above the walls' band (three cells, whose nodes would hold the
+    # block up without friction); the grid-node ground holds it about a cell above its plane.
+    d = 0.2 if plane == "ground" else 0.3
+    x0 = mk.block((0.25, 0.5, d + (3 * mk.DX / 4 + 0.01 if plane == "ground" else 1.25 * mk.DX + 0.005)))
     store = mk.store(len(x0))
     mk.fill(store, x0, E=1e5)
-    sim = Simulator(store, SimConfig(res=16, effects=f"gravity;ground:d=0.2:mu={mu};walls"))
+    sim = Simulator(store, SimConfig(res=16, effects=f"gravity;{plane}:d={d}:mu={mu};walls"))
     v0 = torch.zeros(len(x0), 3, dtype=torch.float64)
     v0[:, 0] = 1.2
     sim.set_state(x0, v0)
