@@ -119,18 +119,20 @@ def score(case: Case, report: dict) -> dict:
     else:
         ok = bool(found) and found[0] == case.expect
     in_set = case.expect in found if case.expect not in ("none", "unexplained") else ok
-    err = None
+    err = covered = None
     if case.truth and report["discovered"] and report["discovered"][0]["effect"] == case.expect:
         got = report["discovered"][0]["params"]
+        interval = report["discovered"][0]["interval"]
         rel = []
         for p, true in case.truth.items():
             scale = abs(true) if true != 0 else max(abs(v) for v in case.truth.values())
             rel.append(abs(got[p] - true) / scale)
         err = max(rel)
+        covered = all(interval[p][0] <= true <= interval[p][1] for p, true in case.truth.items())
     before, after = report["error_before"]["future_rms_m"], report["error_after"]["future_rms_m"]
     return {
         "case": case.name, "kind": case.kind, "expected": case.expect, "verdict": verdict, "found": found,
-        "first_ok": ok, "in_set": in_set, "param_error": err,
+        "first_ok": ok, "in_set": in_set, "param_error": err, "interval_covers": covered,
         "future_rms_before_m": before, "future_rms_after_m": after,
         "future_drop": 1.0 - after / before if before > 0 else 0.0,
         "floor_rms_m": report.get("floor_rms_m"),
@@ -267,6 +269,9 @@ def summary(rows: list[dict]) -> dict:
         "hidden_first": frac(hidden, "first_ok"),
         "hidden_in_set": frac(hidden, "in_set"),
         "param_within_10pct": (sum(e <= 0.1 for e in errs) / len(errs)) if errs else None,
+        # how often the reported 95% interval holds the true value (honest intervals: about 95%)
+        "interval_covers_truth": frac(lambda r: r["kind"] == "hidden" and r.get("interval_covers") is not None,
+                                      "interval_covers"),
         "future_drop_ge_50pct": (sum(d >= 0.5 for d in drops) / len(drops)) if drops else None,
         "excess_over_floor_removed_ge_50pct": (sum(e >= 0.5 for e in excess) / len(excess)) if excess else None,
         "controls_no_effect": frac(lambda r: r["kind"] == "control", "first_ok"),
@@ -276,9 +281,9 @@ def summary(rows: list[dict]) -> dict:
 
 
 def markdown(rows: list[dict]) -> str:
-    L = ["| case | seed | verdict | named | param error | held-out RMS before → after | floor | excess removed "
-         "| time |",
-         "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    L = ["| case | seed | verdict | named | param error | interval holds truth | held-out RMS before → after | floor "
+         "| excess removed | time |",
+         "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for r in rows:
         pe = "—" if r["param_error"] is None else f"{100 * r['param_error']:.1f}%"
         mark = "✓" if r["first_ok"] else "✗"
@@ -289,8 +294,9 @@ def markdown(rows: list[dict]) -> str:
                    f"({-100 * r['future_drop']:+.0f}%)")  # fmt: skip
         floor = "—" if r.get("floor_rms_m") is None else f"{1000 * r['floor_rms_m']:.1f} mm"
         ex = "—" if r.get("excess_removed") is None else f"{100 * r['excess_removed']:.0f}%"
+        cov = {True: "yes", False: "no"}.get(r.get("interval_covers"), "—")
         L.append(f"| {r['case']} | {r['seed']} | {mark} {r['verdict']} | {', '.join(r['found']) or '—'} | {pe} | "
-                 f"{err} | {floor} | {ex} | {r['seconds']:.0f} s |")  # fmt: skip
+                 f"{cov} | {err} | {floor} | {ex} | {r['seconds']:.0f} s |")  # fmt: skip
     s = summary(rows)
     L += ["", "| goal | reached |", "|---|---|"]
     for k, v in s.items():

@@ -122,7 +122,8 @@ def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_
 
 
 def _fake_report(effect: str | None, value: float = 0.0, verdict: str | None = None) -> dict:
-    found = [{"effect": effect, "params": {"linear_drag.c": value}}] if effect else []
+    found = [{"effect": effect, "params": {"linear_drag.c": value},
+              "interval": {"linear_drag.c": [value - 0.02, value + 0.02]}}] if effect else []  # fmt: skip
     return {"verdict": verdict or ("discovered" if effect else "no missing effect"), "discovered": found,
             "ambiguous": [], "error_before": {"future_rms_m": 0.01, "fit_rms_m": 0.004},
             "error_after": {"future_rms_m": 0.004 if effect else 0.01, "fit_rms_m": 0.003}, "seconds": 1.0,
@@ -138,6 +139,8 @@ def test_table_rows_score_what_was_found_against_what_was_hidden():
     drag = BY_NAME["linear_drag"]
     row = score_row(drag, _fake_report("linear_drag", 0.63))
     assert row["first_ok"] and row["in_set"] and math.isclose(row["param_error"], 0.05)
+    assert not row["interval_covers"]  # 0.63 ± 0.02 misses the true 0.6
+    assert score_row(drag, _fake_report("linear_drag", 0.61))["interval_covers"]
     assert math.isclose(row["future_drop"], 0.6)
     wrong = score_row(drag, _fake_report("quadratic_drag"))
     assert not wrong["first_ok"] and wrong["param_error"] is None
@@ -149,6 +152,7 @@ def test_table_rows_score_what_was_found_against_what_was_hidden():
     rows = [{**row, "seed": 0}, {**wrong, "seed": 1}, {**score_row(control, _fake_report(None)), "seed": 0}]
     s = summary(rows)
     assert s["hidden_first"] == 0.5 and s["controls_no_effect"] == 1.0 and s["param_within_10pct"] == 1.0
+    assert s["interval_covers_truth"] == 0.0
 
 
 def test_table_resumes_and_records_failures(tmp_path, monkeypatch):
