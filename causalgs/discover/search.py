@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from causalgs.discover import residuals as R
-from causalgs.discover.calibrate import UNIT, Fit, calibrate, fit_frames
+from causalgs.discover.calibrate import UNIT, Fit, calibrate, fit_frames, positions
 from causalgs.discover.candidates import Candidate, select
 from causalgs.discover.gate import GateConfig, block_bootstrap, effective_n, judge
 from causalgs.discover.model import PhysicsModel
@@ -178,8 +178,48 @@ def fresh_start(model: PhysicsModel, theta: torch.Tensor, params, starts) -> tor
     return alt
 
 
-def _uncertainty(state: State, params, cfg: DiscoverConfig) -> dict:
-    """Bootstrap intervals and z-scores of ``params`` at the refit (see :mod:`causalgs.discover.gate`)."""
+REST_SAMPLES = 16  # rollouts from other draws of the rest shape's error, for the reported intervals
+
+
+def rest_shape_shifts(model: PhysicsModel, theta: torch.Tensor, J: np.ndarray, sigma: float,
+                      samples: int = REST_SAMPLES, seed: int = 0) -> np.ndarray:  # fmt: skip
+    """[samples, k] how far the fit's θ (internal units) would move had the rest shape — the first frame, from
+    which every simulation starts — carried another draw of its error, N(0, sigma²) per coordinate: one rollout per
+    draw from the perturbed rest shape, the change of the trajectory projected on the fit-window Jacobian ``J``
+    (linearised refit). The block bootstrap resamples the residuals of one rest shape and cannot see this; in the
+    hidden-effect table it is the larger of the two."""
+    fr = fit_frames(model)
+    base = positions(model, theta, fr)
+    pinv = np.linalg.pinv(J)
+    rng = np.random.default_rng(seed)
+    x0 = model.x0
+    out = []
+    try:
+        for _ in range(samples):
+            model.x0 = x0 + torch.as_tensor(rng.normal(0.0, sigma, tuple(x0.shape)), dtype=x0.dtype)
+            try:
+                out.append(-(pinv @ (positions(model, theta, fr) - base)))
+            except CausalGSError:  # a draw that blows the simulation up says nothing about the spread
+                continue
+    finally:
+        model.x0 = x0
+    return np.array(out) if out else np.zeros((0, len(theta)))
+
+
+def rest_shape_error(state: State, obs: Observation, floor: float, sigma: float) -> float:
+    """The rest shape's own error per coordinate (m). A correct model's residual is the current frame's noise plus
+    the rest shape's error carried along, so its floor (what no rigid motion removes) is about sqrt(sigma² + e²):
+    e = sqrt(floor² − sigma²), the floor taken at ``state`` (a repaired model) when lower than ``floor`` (the
+    base's, which a missing effect that deforms the body inflates)."""
+    fr = fit_frames(state.model)
+    here = max(R.rigid_floor(state.sim[[f - 1 for f in fr]], obs, fr), sigma)
+    return math.sqrt(max(min(floor, here) ** 2 - sigma**2, 0.0))
+
+
+def _uncertainty(state: State, params, cfg: DiscoverConfig, rest_sigma: float = 0.0) -> dict:
+    """Bootstrap intervals and z-scores of ``params`` at the refit (see :mod:`causalgs.discover.gate`).
+    ``rest_sigma`` > 0 (m): the rest shape's own error, whose effect (:func:`rest_shape_shifts`) is added to the
+    bootstrap's samples (independent sources: each bootstrap sample gets one rest-shape draw, in turn)."""
     model, obs = state.model, state.model.obs
     fr = fit_frames(model)
     fut = list(range(obs.observed, len(obs.times)))
@@ -192,6 +232,7 @@ def _uncertainty(state: State, params, cfg: DiscoverConfig) -> dict:
     if fut:  # each resample's fit, carried to the held-out frames (linearised)
         miss = (state.sim[[f - 1 for f in fut]] - obs.x[fut]).reshape(-1) / UNIT
         state.future_samples = (((miss[None] + (dev - dev.mean(0)) @ J_fut.T) ** 2).mean(1))
+    rest = rest_shape_shifts(model, th, J, rest_sigma) if rest_sigma > 0 else np.zeros((0, len(th)))
     vals = model.values(th)
     out = {}
     for p in params:
@@ -201,13 +242,21 @@ def _uncertainty(state: State, params, cfg: DiscoverConfig) -> dict:
         # blocks), and the interval should say how far the estimate moves, not where resampling drifts.
         centred = dev[:, i] - dev[:, i].mean()
         samples = np.array([float(knob.value(torch.tensor(float(th[i]) + d))) for d in centred])
+        lo, hi = np.percentile(samples, [2.5, 97.5])
+        extra = {}
+        if len(rest):  # the bootstrap's interval, widened to the 95% of both sources together
+            r_i = rest[:, i] - rest[:, i].mean()
+            rest_only = np.array([float(knob.value(torch.tensor(float(th[i]) + d))) for d in r_i])
+            extra = {"se_noise": float(samples.std()), "se_rest_shape": float(rest_only.std())}
+            both = centred + r_i[np.arange(len(centred)) % len(r_i)]
+            samples = np.array([float(knob.value(torch.tensor(float(th[i]) + d))) for d in both])
+            lo, hi = min(lo, np.percentile(samples, 2.5)), max(hi, np.percentile(samples, 97.5))
         se = float(samples.std())
         off = 0.0 if knob.lower is not None or knob.offset == 0.0 else knob.offset
-        lo, hi = np.percentile(samples, [2.5, 97.5])
         out[p] = {"value": vals[p], "se": se, "interval": [float(lo), float(hi)],
                   # No spread at all means the data does not move the parameter (no sensitivity, or pinned at a
                   # bound): nothing is known about it, so it is not significant.
-                  "z": abs(vals[p] - off) / se if se > 0 else 0.0, "samples": samples - vals[p]}  # fmt: skip
+                  "z": abs(vals[p] - off) / se if se > 0 else 0.0, "samples": samples - vals[p], **extra}  # fmt: skip
     return out
 
 
@@ -437,8 +486,10 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         polished = calibrate(st.model, st.fit.theta, iterations=2 * cfg.iterations)
         if polished.loss < st.fit.loss:
             st, st.starts = _state(st.model, polished), st.starts
-            unc = _uncertainty(st, c.params, cfg)
-        unc = widen(unc, st, n_eff)
+        # The reported interval adds the rest shape's error to the bootstrap's (the gate's significance above is
+        # the bootstrap's alone), then any refit start the data cannot tell from the best.
+        rest_sigma = rest_shape_error(st, obs, floor_coord, sigma)
+        unc = widen(_uncertainty(st, c.params, cfg, rest_sigma=rest_sigma), st, n_eff)
         scores = {r["effect"]: r for r in entry["refits"] if "error" not in r}
         report["discovered"].append({
             "effect": c.key,
@@ -446,6 +497,11 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
             "law": _law(c, unc),
             "params": {p: unc[p]["value"] for p in c.params},
             "interval": {p: unc[p]["interval"] for p in c.params},
+            # the interval's sources: the residuals' bootstrap, the rest shape's error (its size, m), refit starts
+            "interval_sources": {"se_noise": {p: unc[p].get("se_noise") for p in c.params},
+                                 "se_rest_shape": {p: unc[p].get("se_rest_shape") for p in c.params},
+                                 "rest_shape_error_m": rest_sigma,
+                                 "starts_within": min(unc[p]["starts_within"] for p in c.params)},
             "evidence": {"signature": c.driver, "signature_share": sig.get(c.driver),
                          "future_drop": v.checks["future_drop"], "delta_bic": v.checks["delta_bic"],
                          "z": significance(unc)},

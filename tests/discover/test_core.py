@@ -372,3 +372,31 @@ def test_two_passing_candidates_tie_unless_the_data_separates_them():
     paired = cand(-118.0, 0.14, 6.0)
     top_wide = cand(-120.0, 0.10, 6.0)  # both move together with the shared resamples: the gap is certain
     assert future_gap(top_wide[1], paired[1])[0] > 0 and not _tied(top_wide, paired, cfg)
+
+
+def test_rest_shape_error_moves_the_fit_as_the_law_says():
+    """Another draw of the rest shape's error (N(0, s²) per coordinate, constant in time for a rigid free flight)
+    moves the fitted throw u by s·Σt / (√P·Σt²) per axis (the least-squares slope of a constant offset). The
+    material is held (its Jacobian columns zeroed): a free flight sees the stiffness only through the substep's
+    Euler lag, which is linear in time like the throw and would make the two trade without bound."""
+    from causalgs import _ti
+    from causalgs.discover.calibrate import fit_frames
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.screen import sensitivities
+    from causalgs.discover.search import rest_shape_shifts
+
+    _ti.init("cpu", "float32")
+    obs = _flight()
+    m = PhysicsModel(obs, "gravity;walls", res=16)
+    th = m.initial(E=3e4)
+    s = 0.003
+    fr = fit_frames(m)
+    J = sensitivities(m, th, fr)
+    J[:, [m.index("cube.E"), m.index("cube.nu")]] = 0.0
+    shifts = rest_shape_shifts(m, th, J, s, samples=24)
+    t = obs.times[fr]
+    law = s * t.sum() / (math.sqrt(obs.points) * (t**2).sum())
+    u = shifts[:, [m.index(f"cube.v0[{i}]") for i in range(3)]]
+    assert np.allclose(u.std(0), law, rtol=0.4), (u.std(0), law)
+    assert np.abs(shifts[:, m.index("cube.E")]).max() == 0.0
+    assert np.allclose(m.x0.numpy(), obs.x[0])  # the model's rest shape is put back

@@ -30,9 +30,13 @@ def test_synth_fit_discover_on_a_hidden_drag(tmp_path):
     assert r.exit_code == 0, r.output
     rep = json.loads(r.output)
     assert "linear_drag" not in rep["config"]["spec"]  # the model's physics lacks the drag
-    assert rep["verdict"] in ("discovered", "ambiguous", "no missing effect", "unexplained discrepancy")
+    # Something is missing, so the model must not be called complete; and whatever it names must be a drag (the two
+    # drags are a confusable pair) that made the held-out frames better. An unexplained discrepancy is an honest
+    # answer too: the video's truth was simulated on a finer grid than the model's, and contact differs with it.
+    assert rep["verdict"] != "no missing effect", rep["verdict"]
     named = [d["effect"] for d in rep["discovered"]] + [a["effect"] for a in rep["ambiguous"]]
-    if named:  # whatever it names must have made the held-out frames better, on trajectories and on images
+    assert set(named) <= {"linear_drag", "quadratic_drag"}, named
+    if named:
         assert rep["error_after"]["future_rms_m"] < rep["error_before"]["future_rms_m"]
     im = rep["images"]
     assert im is not None and im["images"] >= 1
