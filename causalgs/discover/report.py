@@ -148,9 +148,11 @@ def markdown(report: dict) -> str:
             if src.get("se_rest_shape"):
                 ses = ", ".join(f"{p.split('.', 1)[1]} {src['se_noise'][p]:.3g} and {src['se_rest_shape'][p]:.3g}"
                                 for p in d["params"] if src["se_rest_shape"].get(p) is not None)  # fmt: skip
+                starts = src.get("starts_within")
                 L.append(f"  - interval (95%) from two sources, standard errors: {ses} (the residuals' block "
                          f"bootstrap, then the rest shape's error of {_mm(src['rest_shape_error_m'])} carried "
-                         f"through the fit); {src['starts_within']} refit start(s) within the profile threshold")
+                         "through the fit)" + ("" if starts is None else
+                                               f"; {starts} refit start(s) within the profile threshold"))  # fmt: skip
             for r in d.get("runners_up", []):
                 if r["passed"]:
                     L.append(f"  - also passed, told apart: `{r['effect']}` (ΔBIC {r['delta_bic']:+.1f}, held-out "
