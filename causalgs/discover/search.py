@@ -258,6 +258,7 @@ def _uncertainty(state: State, params, cfg: DiscoverConfig, rest_sigma: float = 
         centred = dev[:, i] - dev[:, i].mean()
         samples = np.array([float(knob.value(torch.tensor(float(th[i]) + d))) for d in centred])
         lo, hi = np.percentile(samples, [2.5, 97.5])
+        noise_samples = samples  # the gate's significance (scalar or vector) is the residual bootstrap's alone
         extra = {}
         if len(rest):  # the bootstrap's interval, widened to the 95% of both sources together
             r_i = rest[:, i] - rest[:, i].mean()
@@ -267,12 +268,12 @@ def _uncertainty(state: State, params, cfg: DiscoverConfig, rest_sigma: float = 
             samples = np.array([float(knob.value(torch.tensor(float(th[i]) + d))) for d in both])
             lo, hi = min(lo, np.percentile(samples, 2.5)), max(hi, np.percentile(samples, 97.5))
         se = float(samples.std())
-        se_z = extra.get("se_noise", se)  # the gate's significance is the residual bootstrap's alone
+        se_z = float(noise_samples.std())
         off = 0.0 if knob.lower is not None or knob.offset == 0.0 else knob.offset
         out[p] = {"value": vals[p], "se": se, "interval": [float(lo), float(hi)],
                   # No spread at all means the data does not move the parameter (no sensitivity, or pinned at a
                   # bound): nothing is known about it, so it is not significant.
-                  "z": abs(vals[p] - off) / se_z if se_z > 0 else 0.0, "samples": samples - vals[p],
+                  "z": abs(vals[p] - off) / se_z if se_z > 0 else 0.0, "samples": noise_samples - vals[p],
                   **extra}  # fmt: skip
     return out
 
