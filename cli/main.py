@@ -83,8 +83,16 @@ def cli():
     help="Capture rate in frames per second [default: 120 for the simulated scenes, whose future frames then still "
     "hold motion; 24 for spin].",
 )
+@click.option(
+    "--reference-res",
+    type=click.IntRange(8, 256),
+    default=None,
+    help="Simulated scenes only: grid cells along the longest side of the true motion's simulation box [default: 64, "
+    "finer than a model's]. A model's own spacing gives a scene whose contacts and impacts its grid can reproduce "
+    "(MPM contact depends on the grid), e.g. to test `causalgs discover` on an effect alone.",
+)
 @click.option("--force", is_flag=True, help="Overwrite an existing dataset in --out.")
-def synth(name, out, views, frames, resolution, background, seed, effects, fps, force):
+def synth(name, out, views, frames, resolution, background, seed, effects, fps, reference_res, force):
     """Write the built-in scene NAME as a dataset in --out.
 
     The layout is the D-NeRF / NVFi one (transforms_{train,val,test}.json, RGBA PNGs, points3d.ply) plus gt/ with
@@ -113,7 +121,7 @@ def synth(name, out, views, frames, resolution, background, seed, effects, fps, 
     for n in BENCHMARK if name == "all" else [name]:
         target = Path(out) / n if name == "all" else out
         opts = {"views": views, "frames": frames, "resolution": resolution, "background": bg, "seed": seed}
-        click.echo(generate(n, target, **opts, overwrite=force, effects=effects, fps=fps))
+        click.echo(generate(n, target, **opts, overwrite=force, effects=effects, fps=fps, reference_res=reference_res))
 
 
 @cli.command()

@@ -40,12 +40,15 @@ SIMULATED = {"jelly", "fallingball", "collide", "room", "toss"}
 DEFAULT_FPS = {name: (spin.FPS if name == "spin" else physics.FPS) for name in SCENES}
 
 
-def _check_options(name, views, frames, resolution, background, fps) -> tuple[float, float, float]:
+def _check_options(name, views, frames, resolution, background, fps, reference_res=None) -> tuple[float, float, float]:
     if name not in SCENES:
         raise CausalGSError(f"unknown scene '{name}'; choose one of: {', '.join(sorted(SCENES))}")
     if fps is not None and (isinstance(fps, bool) or not isinstance(fps, (int, float)) or not math.isfinite(fps)
                             or not 1.0 <= fps <= 10000.0):  # fmt: skip
         raise CausalGSError(f"--fps = {fps!r} must be a number in [1, 10000]")
+    if reference_res is not None and (isinstance(reference_res, bool) or not isinstance(reference_res, int)
+                                      or not 8 <= reference_res <= 256):  # fmt: skip
+        raise CausalGSError(f"--reference-res = {reference_res!r} must be an integer in [8, 256]")
     for what, value, low in (("views", views, 2), ("frames", frames, 2), ("resolution", resolution, 8)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise CausalGSError(f"--{what} = {value!r} must be an integer >= {low}")
@@ -71,17 +74,20 @@ def generate(
     progress: bool = True,
     effects: str | None = None,
     fps: float | None = None,
+    reference_res: int | None = None,
 ) -> str:
     """Write the built-in scene ``name`` into ``out`` and return a short human summary.
 
     ``effects`` (simulated scenes only) replaces the scene's default effects spec, e.g.
     ``"gravity;ground:mu=0.4;linear_drag:c=0.3;walls"``. The result depends only on the arguments (same seed, same
-    bytes). ``fps`` is the capture rate (None: the scene's default, :data:`DEFAULT_FPS`). Raises
+    bytes). ``fps`` is the capture rate (None: the scene's default, :data:`DEFAULT_FPS`). ``reference_res``
+    (simulated scenes only) is the truth's grid along the box's longest side (None: the fine default; a model's own
+    spacing makes a scene whose contacts the model's grid can reproduce). Raises
     :class:`CausalGSError` with one line for bad options or when ``out`` already holds files and ``overwrite`` is
     false.
     """
     start = time.perf_counter()
-    bg = _check_options(name, views, frames, resolution, background, fps)
+    bg = _check_options(name, views, frames, resolution, background, fps, reference_res)
     fps = float(DEFAULT_FPS[name] if fps is None else fps)
     out = Path(out)
     check_out(out, overwrite)  # before minutes of simulation
@@ -90,8 +96,11 @@ def generate(
             from causalgs.sim.effects import parse_spec
 
             parse_spec(effects)  # one-line error for a bad spec before anything runs
+        extra = {} if reference_res is None else {"reference_res": reference_res}
         scene = SCENES[name](views=views, frames=frames, resolution=resolution, seed=seed, effects=effects,
-                             progress=progress, fps=fps)  # fmt: skip
+                             progress=progress, fps=fps, **extra)  # fmt: skip
+    elif reference_res is not None:
+        raise CausalGSError(f"scene '{name}' has analytic motion and takes no --reference-res")
     elif effects is not None:
         raise CausalGSError(f"scene '{name}' has analytic motion and takes no --effects (simulated: "
                             f"{', '.join(sorted(SIMULATED))})")  # fmt: skip
@@ -107,6 +116,7 @@ def generate(
             "seed": seed,
             "effects": effects,
             "fps": fps,
+            "reference_res": reference_res,
         },
     }
     counts = write_dataset(out, scene, background=bg, overwrite=overwrite, progress=progress, options=options)

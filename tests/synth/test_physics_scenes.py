@@ -140,3 +140,23 @@ def test_cli_writes_the_whole_suite(tmp_path):
         assert load_dataset(out / name).image_size == (16, 16)
     res = CliRunner().invoke(cli, [*args, "--force", "--effects", "gravity"])
     assert res.exit_code != 0 and "not to 'all'" in res.output
+
+
+def test_reference_res_option_sets_the_true_grid(tmp_path):
+    """--reference-res sets the truth's simulation grid (recorded in gt/meta.json); analytic scenes and grids out of
+    range are refused with one line."""
+    from click.testing import CliRunner
+
+    from cli.main import cli
+
+    out = tmp_path / "toss"
+    args = ["synth", "toss", "--out", str(out), "--views", "2", "--frames", "2", "--resolution", "16"]
+    r = CliRunner().invoke(cli, [*args, "--reference-res", "16"])
+    assert r.exit_code == 0, r.output
+    meta = json.loads((out / "gt" / "meta.json").read_text())
+    grid = meta["motion"]["grid"]
+    assert grid["res"] == 16 and grid["dx"] == pytest.approx(1.0 / 16)
+    r = CliRunner().invoke(cli, ["synth", "spin", "--out", str(tmp_path / "spin"), "--reference-res", "16"])
+    assert r.exit_code != 0 and "--reference-res" in r.output and "Traceback" not in r.output
+    r = CliRunner().invoke(cli, [*args, "--force", "--reference-res", "4"])
+    assert r.exit_code != 0 and "--reference-res" in r.output
