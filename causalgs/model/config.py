@@ -51,6 +51,11 @@ class PhysicsConfig:
     enabled: bool = True
     iterations: int = 80
     res: int = 32  # grid cells along the side of the (cubic) simulation box
+    # What the box covers: "moving": the bodies' tracked paths plus a margin (an axis whose paths come near the edge
+    # of the static floor or room extends to that edge, so the box's walls stand at the room's); "scene": the whole
+    # static footprint too. A small body on a large floor gets cells half the size with "moving" at the same cost
+    # per cell (MPM contact and impacts change with the cell size).
+    box: str = "moving"
     segment: int = 16  # substeps per checkpoint segment
     budget: int = 1500  # dynamic Gaussians that are particles themselves (the rest follow their nearest particle)
     capacity: int = 8192  # particle rows of the simulator's store (fixed, so kernels compile once)
@@ -79,6 +84,10 @@ class PhysicsConfig:
     assimilate: int = 12
     assimilate_iterations: int = 40
     lr_assimilate: float = 0.02
+
+    def __post_init__(self):
+        if self.box not in ("moving", "scene"):
+            raise CausalGSError(f"physics.box = {self.box!r} must be 'moving' or 'scene'")
 
 
 @dataclass

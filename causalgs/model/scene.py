@@ -218,16 +218,23 @@ class CausalGS(torch.nn.Module):
             ground_z = _ground_level(static[:, 2], start_low, size)
             flat[names.index("ground.d")] = ground_z
         lo, hi = m_lo.clone(), m_hi.clone()
-        if len(static) > 100:  # the static scene's footprint in x, y (the floor, the room): the simulation covers it
-            lo[:2] = torch.minimum(lo[:2], _quantile(static[:, :2], 0.01))
-            hi[:2] = torch.maximum(hi[:2], _quantile(static[:, :2], 0.99))
         if ground_z is not None:  # nothing moves below the ground
             lo[2] = ground_z
             hi[2] = max(float(hi[2]), ground_z + 0.1 * size)
-        side = float((hi - lo).max())
         # The margin around the moving region is a fixed share of it (an eighth of the grid at any resolution), so
         # a finer grid resolves the same box more finely instead of hugging the bodies' paths more tightly.
-        dx = side / (pc.res - 2 * max(WALL_BAND + 1, math.ceil(pc.res / 8)))
+        margin = max(WALL_BAND + 1, math.ceil(pc.res / 8))
+        if len(static) > 100:  # the static scene's footprint in x, y (the floor, the room)
+            f_lo, f_hi = _quantile(static[:, :2], 0.01), _quantile(static[:, :2], 0.99)
+            if pc.box == "scene":
+                lo[:2], hi[:2] = torch.minimum(lo[:2], f_lo), torch.maximum(hi[:2], f_hi)
+            else:  # "moving": the paths, and the footprint's edge along an axis where a path comes within the
+                # margin of it (a body that reaches the room's walls), so that the box's walls stand at the room's
+                reach = margin * float((hi - lo).max()) / (pc.res - 2 * margin)
+                lo[:2] = torch.where(lo[:2] - reach <= f_lo, torch.minimum(lo[:2], f_lo), lo[:2])
+                hi[:2] = torch.where(hi[:2] + reach >= f_hi, torch.maximum(hi[:2], f_hi), hi[:2])
+        side = float((hi - lo).max())
+        dx = side / (pc.res - 2 * margin)
         centre = (lo + hi) / 2
         box_lo = centre - 0.5 * pc.res * dx
         box_lo[2] = lo[2] - (WALL_BAND + 0.5) * dx  # the ground plane just above the bottom wall band

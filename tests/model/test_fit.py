@@ -431,3 +431,26 @@ def test_a_finer_simulation_grid_covers_the_same_box(fitted):
         extents[res] = (m.box[1] - m.box[0]).clone()
         assert m.cell == pytest.approx(float(extents[res].max()) / res)
     assert torch.allclose(extents[32], extents[64], rtol=1e-9)
+
+
+def test_the_box_covers_the_moving_bodies_not_the_whole_floor(fitted):
+    """``physics.box = "moving"`` (default) puts the grid on the bodies' tracked paths: a small body on a large floor
+    gets finer cells than ``"scene"``, whose box spans the static floor; both hold every path and the ground."""
+    from causalgs.model.fit import load_model
+
+    m, _, _ = load_model(fitted)
+    boxes = {}
+    for box in ("moving", "scene"):
+        m.config.physics.box = box
+        m.build_physics()
+        boxes[box] = m.box.clone()
+        solid = m.dynamic & (torch.sigmoid(m.gaussians.opacities.detach()) >= m.config.physics.min_opacity)
+        with torch.no_grad():
+            traj, _ = m.kinematic(m.train_frames - 1, rotations=False, index=torch.nonzero(solid).flatten())
+        paths = traj[:, solid].reshape(-1, 3).double()
+        inside = ((paths >= m.box[0]) & (paths <= m.box[1])).all(-1).double().mean()
+        assert inside > 0.99, f"{box}: {float(inside):.3f} of the tracked positions inside the box"
+    static = m.gaussians.means.detach().double()[~m.dynamic]
+    floor_xy = (torch.quantile(static[:, 0], 0.99) - torch.quantile(static[:, 0], 0.01)).item()
+    side = {b: float((v[1] - v[0]).max()) for b, v in boxes.items()}
+    assert side["scene"] >= floor_xy and side["moving"] < 0.8 * side["scene"], side
