@@ -59,6 +59,9 @@ class PhysicsConfig:
     segment: int = 16  # substeps per checkpoint segment
     budget: int = 1500  # dynamic Gaussians that are particles themselves (the rest follow their nearest particle)
     capacity: int = 8192  # particle rows of the simulator's store (fixed, so kernels compile once)
+    # Most particles simulated (Gaussian particles and interior fill at 8 per cell): a large body on a fine grid gets
+    # coarser cells (a larger box) rather than a thinner fill, so one iteration's cost stays bounded.
+    max_particles: int = 4096
     effects: str = "gravity;ground;walls"  # the model's physics (a spec of causalgs.sim.effects)
     # Effect parameters trained (names as in Effects.param_names). The ground's offset is learned from its "auto"
     # start: the simulated contact of particles a few centimetres apart sits a fraction of a cell off the plane.

@@ -5,8 +5,9 @@ wrong inertia, contact that folds in. The particle set is therefore:
 
 - the dynamic Gaussians themselves (each one a particle; a random subset of ``budget`` when there are more), plus
 - interior fill: the dynamic Gaussians' centres are voxelised at spacing dx/2 (the usual 8 particles per cell), the
-  occupancy closed and its enclosed holes filled (scipy.ndimage), and every filled voxel that holds no Gaussian
-  particle gets one lattice particle at its centre.
+  occupancy closed until each body's surface seals and its enclosed holes filled (scipy.ndimage; see
+  :func:`seal_and_fill`), and every filled voxel that holds no Gaussian particle gets one lattice particle at its
+  centre.
 
 Each filled voxel's volume (dx/2)³ is shared equally by the particles in it, so total mass is the filled volume times
 density however the Gaussians are spread. Every dynamic Gaussian follows its nearest particle p to first order:
@@ -59,16 +60,18 @@ class Particles:
 
 def build_particles(
     means: np.ndarray, dynamic: np.ndarray, lo, dx: float, budget: int, capacity: int, seed: int = 0,
-    solid: np.ndarray | None = None,
+    solid: np.ndarray | None = None, coarse_fill: bool = True,
 ) -> Particles:
     """Particles for the Gaussians ``means[solid]`` (default: ``dynamic``) on a grid of cell ``dx`` whose box starts
     at ``lo``: 8 per cell, or 1 per cell when 8 would pass ``capacity`` (a large dynamic region on a fixed-capacity
-    store). Every Gaussian of ``dynamic`` is carried by its nearest particle."""
+    store). Every Gaussian of ``dynamic`` is carried by its nearest particle. With ``coarse_fill`` false, more than
+    ``capacity`` particles at 8 per cell raise :class:`TooManyParticles` (with the count) instead."""
     solid = dynamic if solid is None else (np.asarray(solid, bool) & np.asarray(dynamic, bool))
     try:
         return _build(means, dynamic, solid, lo, dx / 2.0, budget, capacity, seed)
-    except _TooMany:
-        pass
+    except _TooMany as e:
+        if not coarse_fill:
+            raise TooManyParticles(e.args[0]) from None
     try:
         return _build(means, dynamic, solid, lo, dx, budget, capacity, seed)
     except _TooMany as e:
@@ -80,6 +83,47 @@ def build_particles(
 
 class _TooMany(Exception):
     pass
+
+
+class TooManyParticles(Exception):
+    """The particles at 8 per cell would pass the limit; ``count`` is how many they would be."""
+
+    def __init__(self, count: int):
+        super().__init__(count)
+        self.count = int(count)
+
+
+MAX_EXTRA_CLOSING = 8  # closing iterations tried beyond the first when a surface has not sealed
+SEALED = 0.75  # a body is sealed once its filled volume reaches this share of its volume at the most closing
+
+
+def seal_and_fill(occ: np.ndarray, first: int) -> np.ndarray:
+    """The solid bodies of a voxelised surface: closed, then their enclosed holes filled.
+
+    A surface sampled by Gaussian centres has gaps (a flat face is covered by a few large Gaussians), and on a fine
+    voxel grid one closing iteration does not seal them: the fill then leaves a hollow shell, whose mass and inertia
+    are a fraction of the body's. So every body (a connected part of the once-closed occupancy), closed on its own so
+    that no closing bridges two bodies, takes the fewest closing iterations, from ``first`` up to
+    ``first + MAX_EXTRA_CLOSING``, whose filled volume reaches ``SEALED`` of the most-closed one: a hollow shell holds
+    a small share of it, a solid body nearly all of it. The fewest iterations keep a concave shape's notch, unless the
+    notch is more than a quarter of the closed volume and narrower than the closing (then it is filled). ``occ`` must
+    be padded by ``first + MAX_EXTRA_CLOSING`` voxels."""
+    cube = np.ones((3, 3, 3), bool)
+    most = first + MAX_EXTRA_CLOSING
+    labels, _ = ndimage.label(ndimage.binary_closing(occ, structure=cube, iterations=first), structure=cube)
+    out = np.zeros_like(occ)
+    for k, sl in enumerate(ndimage.find_objects(labels), start=1):
+        if sl is None:
+            continue
+        sl = tuple(slice(max(0, a.start - most), min(n, a.stop + most)) for a, n in zip(sl, occ.shape, strict=True))
+        mine = np.pad(occ[sl] & (labels[sl] == k), most)
+        filled = [ndimage.binary_fill_holes(ndimage.binary_closing(mine, structure=cube, iterations=c))
+                  for c in range(first, most + 1)]  # fmt: skip
+        vols = np.array([np.count_nonzero(f) for f in filled], dtype=np.float64)
+        pick = int(np.argmax(vols >= SEALED * vols[-1]))
+        inner = tuple(slice(most, most + (a.stop - a.start)) for a in sl)
+        out[sl] |= filled[pick][inner]
+    return out
 
 
 def _build(means: np.ndarray, dynamic: np.ndarray, solid: np.ndarray, lo, h: float, budget: int, capacity: int,
@@ -100,13 +144,12 @@ def _build(means: np.ndarray, dynamic: np.ndarray, solid: np.ndarray, lo, h: flo
     occ[tuple((ijk - base).T)] = True
     # Close gaps as wide as the Gaussians' typical spacing so the surface seals before its inside is filled.
     spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1])) if len(pts) > 1 else h
-    closing = int(np.clip(np.ceil(2.0 * spacing / h), 1, 6))
-    pad += closing
-    occ = np.pad(occ, closing)
-    base = base - closing
+    first = int(np.clip(np.ceil(2.0 * spacing / h), 1, 6))
+    pad += first + MAX_EXTRA_CLOSING
+    occ = np.pad(occ, first + MAX_EXTRA_CLOSING)
+    base = base - first - MAX_EXTRA_CLOSING
     shape = np.array(occ.shape)
-    occ = ndimage.binary_closing(occ, structure=np.ones((3, 3, 3), bool), iterations=closing)
-    occ = ndimage.binary_fill_holes(occ)
+    occ = seal_and_fill(occ, first)
     # Every Gaussian particle's voxel.
     g_ijk = np.floor((means[chosen].astype(np.float64) - lo) / h).astype(np.int64) - base
     occ[tuple(g_ijk.T)] = True

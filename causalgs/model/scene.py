@@ -24,7 +24,7 @@ from causalgs.model.config import FitConfig
 from causalgs.model.fields import InversePhysics
 from causalgs.model.gaussians import Gaussians
 from causalgs.model.kinematic import blend, pattern_motion
-from causalgs.model.particles import Particles, build_particles
+from causalgs.model.particles import Particles, TooManyParticles, build_particles
 from causalgs.render.reference import quat_scale_to_cov
 from causalgs.sim.autograd import deformed_covariance, simulate
 from causalgs.sim.effects import WALL_BAND, Effects
@@ -236,12 +236,28 @@ class CausalGS(torch.nn.Module):
         side = float((hi - lo).max())
         dx = side / (pc.res - 2 * margin)
         centre = (lo + hi) / 2
-        box_lo = centre - 0.5 * pc.res * dx
-        box_lo[2] = lo[2] - (WALL_BAND + 0.5) * dx  # the ground plane just above the bottom wall band
+        limit = min(pc.max_particles, pc.capacity)
+        for _ in range(8):  # a large body on a fine grid: coarser cells (a larger box), never a thinner fill
+            box_lo = centre - 0.5 * pc.res * dx
+            box_lo[2] = lo[2] - (WALL_BAND + 0.5) * dx  # the ground plane just above the bottom wall band
+            # Solid Gaussians off the grid (outliers beyond the paths' robust bounds) are carried like floaters, not
+            # simulated: a particle whose stencil leaves the grid is not matter the grid can move.
+            inner_lo, inner_hi = box_lo + dx, box_lo + (pc.res - 2) * dx
+            inside = solid & ((means >= inner_lo) & (means <= inner_hi)).all(-1)
+            if not bool(inside.any()):
+                raise CausalGSError("no solid dynamic Gaussian lies inside the simulation box")
+            try:
+                particles = build_particles(means.numpy(), dyn.numpy(), box_lo.numpy(), dx, pc.budget, limit, seed,
+                                            solid=inside.numpy(), coarse_fill=False)  # fmt: skip
+                break
+            except TooManyParticles as e:
+                dx *= 1.03 * (e.count / limit) ** (1.0 / 3.0)
+        else:
+            raise CausalGSError(f"no grid spacing keeps the particles within physics.max_particles = {limit}: raise "
+                                f"it or lower physics.budget (Gaussian particles, {pc.budget})")
         self.box.copy_(torch.stack([box_lo, box_lo + pc.res * dx]))
         self.effect_params = torch.nn.Parameter(torch.as_tensor(flat, dtype=torch.float64))
-        self.particles = build_particles(means.numpy(), dyn.numpy(), box_lo.numpy(), dx, pc.budget, pc.capacity, seed,
-                                         solid=solid.numpy())  # fmt: skip
+        self.particles = particles
         self._sim = None
 
     @property

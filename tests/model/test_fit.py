@@ -454,3 +454,22 @@ def test_the_box_covers_the_moving_bodies_not_the_whole_floor(fitted):
     floor_xy = (torch.quantile(static[:, 0], 0.99) - torch.quantile(static[:, 0], 0.01)).item()
     side = {b: float((v[1] - v[0]).max()) for b, v in boxes.items()}
     assert side["scene"] >= floor_xy and side["moving"] < 0.8 * side["scene"], side
+
+
+def test_a_particle_limit_coarsens_the_grid_not_the_fill(fitted):
+    """``physics.max_particles``: when 8 particles per cell would pass it, the grid's cells grow (the box with them)
+    and the fill stays at 8 per cell; every particle's stencil stays inside the grid."""
+    from causalgs.model.fit import load_model
+
+    m, _, _ = load_model(fitted)
+    m.build_physics()
+    full, dx_full = len(m.particles), m.cell
+    n_fill = int((m.particles.gaussian < 0).sum())
+    limit = full - n_fill // 2
+    m.config.physics.max_particles = limit
+    m.build_physics()
+    p = m.particles
+    assert len(p) <= limit and m.cell > dx_full
+    fill = p.vol[p.gaussian < 0]
+    assert len(fill) > 0 and float(fill.max()) == pytest.approx((m.cell / 2) ** 3, rel=1e-6)
+    assert bool(((p.x0 >= m.box[0] + m.cell) & (p.x0 <= m.box[1] - 2 * m.cell)).all())

@@ -63,3 +63,31 @@ def test_too_many_particles_and_nothing_dynamic_are_clear_errors():
         build_particles(means, np.ones(20000, bool), lo=(-1, -1, -1), dx=0.02, budget=200, capacity=5000)
     with pytest.raises(CausalGSError, match="no dynamic"):
         build_particles(means, np.zeros(20000, bool), lo=(-1, -1, -1), dx=0.05, budget=10, capacity=500)
+
+
+def test_a_gappy_surface_is_sealed_before_it_is_filled():
+    """A cube's surface sampled with holes wider than one closing (a flat face covered by a few large Gaussians) is
+    filled whole; a notched solid that is closed at once keeps its notch; two bodies seal independently."""
+    from causalgs.model.particles import MAX_EXTRA_CLOSING, seal_and_fill
+
+    n, pad = 20, 1 + MAX_EXTRA_CLOSING
+    shell = np.zeros((n, n, n), bool)
+    shell[[0, -1], :, :] = shell[:, [0, -1], :] = shell[:, :, [0, -1]] = True
+    gappy = shell.copy()
+    gappy[0, 5:12, 5:12] = False  # a 7-voxel hole in one face: one closing does not seal it
+    occ = np.pad(gappy, pad)
+    from scipy import ndimage
+
+    one = ndimage.binary_fill_holes(ndimage.binary_closing(occ, np.ones((3, 3, 3), bool)))
+    assert one.sum() < 0.5 * n**3  # the old fill: a hollow shell
+    out = seal_and_fill(occ, 1)
+    assert abs(int(out.sum()) - n**3) <= 0.02 * n**3
+    # A solid with a notch (already closed) keeps its notch.
+    ell = np.ones((n, n, n), bool)
+    ell[12:, :, 12:] = False
+    out = seal_and_fill(np.pad(ell, pad), 1)
+    assert int(out.sum()) == int(ell.sum())
+    # Two bodies side by side, one gappy and one closed, each as it should be.
+    two = np.concatenate([gappy, np.zeros((12, n, n), bool), ell], axis=0)
+    out = seal_and_fill(np.pad(two, pad), 1)
+    assert abs(int(out.sum()) - (n**3 + int(ell.sum()))) <= 0.02 * n**3
