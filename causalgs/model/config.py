@@ -49,7 +49,7 @@ class PhysicsConfig:
     """The physical path: differentiable MPM from the inferred causes, trained through renders and consistency."""
 
     enabled: bool = True
-    iterations: int = 80
+    iterations: int = 60
     res: int = 32  # grid cells along the side of the (cubic) simulation box
     # What the box covers: "moving": the bodies' tracked paths plus a margin (an axis whose paths come near the edge
     # of the static floor or room extends to that edge, so the box's walls stand at the room's); "scene": the whole
@@ -85,7 +85,7 @@ class PhysicsConfig:
     # The forecast's start (Trainer._assimilate): frames before the end of the window it starts from (0: off, start
     # at the last observed frame with the tracked velocity), Adam iterations and rate (m/s, rad/s per step).
     assimilate: int = 12
-    assimilate_iterations: int = 40
+    assimilate_iterations: int = 30
     lr_assimilate: float = 0.02
 
     def __post_init__(self):
@@ -138,13 +138,13 @@ PRESETS: dict[str, dict] = {
                       "opacity_reset_every": 0, "max_gaussians": 20_000, "sh_degree": 1,
                       "sh_degree_every": 500},
         "kinematic": {"iterations": 1200},
-        "physics": {"iterations": 80},
+        "physics": {"iterations": 60, "assimilate_iterations": 30},
     },
     "full": {
         "canonical": {"iterations": 5000, "densify_from": 300, "densify_until": 3500, "densify_every": 100,
                       "opacity_reset_every": 2000, "max_gaussians": 40_000, "sh_degree": 2, "sh_degree_every": 1000},
         "kinematic": {"iterations": 3000},
-        "physics": {"iterations": 160, "budget": 3000},
+        "physics": {"iterations": 160, "budget": 3000, "assimilate_iterations": 60},
     },
 }
 
