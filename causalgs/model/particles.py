@@ -107,7 +107,7 @@ def seal_and_fill(occ: np.ndarray, first: int) -> np.ndarray:
     ``first + MAX_EXTRA_CLOSING``, whose filled volume reaches ``SEALED`` of the most-closed one: a hollow shell holds
     a small share of it, a solid body nearly all of it. The fewest iterations keep a concave shape's notch, unless the
     notch is more than a quarter of the closed volume and narrower than the closing (then it is filled). ``occ`` must
-    be padded by ``first + MAX_EXTRA_CLOSING`` voxels."""
+    be padded by ``first`` voxels (each body is padded further on its own)."""
     cube = np.ones((3, 3, 3), bool)
     most = first + MAX_EXTRA_CLOSING
     labels, _ = ndimage.label(ndimage.binary_closing(occ, structure=cube, iterations=first), structure=cube)
@@ -145,9 +145,8 @@ def _build(means: np.ndarray, dynamic: np.ndarray, solid: np.ndarray, lo, h: flo
     # Close gaps as wide as the Gaussians' typical spacing so the surface seals before its inside is filled.
     spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1])) if len(pts) > 1 else h
     first = int(np.clip(np.ceil(2.0 * spacing / h), 1, 6))
-    pad += first + MAX_EXTRA_CLOSING
-    occ = np.pad(occ, first + MAX_EXTRA_CLOSING)
-    base = base - first - MAX_EXTRA_CLOSING
+    occ = np.pad(occ, first)
+    base = base - first
     shape = np.array(occ.shape)
     occ = seal_and_fill(occ, first)
     # Every Gaussian particle's voxel.
