@@ -54,8 +54,8 @@ def fit(data, out, preset, config_path, overrides, no_physics, resume, seed, dev
       kinematic  physics codes and velocity field through renders of the moving Gaussians
       physics    MPM particles from the dynamic Gaussians; materials, initial velocity and effect
                  parameters trained through the differentiable simulator
-      assimilate the forecast's starting velocity: the simulation of the window's last frames fitted to
-                 their images (physics.assimilate frames; 0 turns it off)
+      assimilate where the forecast starts: physics.assimilate frames before the window's end, from the
+                 tracked or the replayed state, whichever forecasts the frames after it better (0: off)
     An interrupted fit continues with --resume. The resolved config is saved as config.toml.
     """
     from causalgs import _ti

@@ -38,7 +38,7 @@ from causalgs.metrics import ssim
 from causalgs.model.canonical import train_canonical
 from causalgs.model.config import FitConfig
 from causalgs.model.gaussians import Gaussians
-from causalgs.model.scene import CausalGS, scene_bounds
+from causalgs.model.scene import FORECAST_SOURCES, CausalGS, scene_bounds
 from causalgs.model.timeline import Timeline
 from causalgs.sim.effects import REGISTRY
 
@@ -145,6 +145,7 @@ class Trainer:
         self.rng = np.random.default_rng(config.seed)
         self.model: CausalGS | None = None
         self.stage_seconds: dict[str, float] = {}
+        self.forecast_choice: dict | None = None  # the assimilation stage's scores of the forecast's starts
         self._last_save = time.monotonic()
 
     # -- shared -----------------------------------------------------------------------------------------------------
@@ -179,6 +180,7 @@ class Trainer:
             "rng": self.rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(),
             "stage_seconds": self.stage_seconds,
+            "forecast_choice": self.forecast_choice,
         }
 
     def _maybe_save(self, stage: str, it: int, optimizer, force: bool = False) -> None:
@@ -201,6 +203,7 @@ class Trainer:
             self.rng.bit_generator.state = resume["rng"]
             torch.set_rng_state(resume["torch_rng"])
             self.stage_seconds = dict(resume.get("stage_seconds", {}))
+            self.forecast_choice = resume.get("forecast_choice")
             self.run.truncate_log(start_stage, start_it)
         order = STAGES.index(start_stage)
         if order == 0:
@@ -364,46 +367,99 @@ class Trainer:
         self.stage_seconds["physics"] = time.monotonic() - t0
 
     def _assimilate(self, start: int, opt_state) -> None:
-        """Where the forecast starts (data assimilation): the tracked state ``physics.assimilate`` frames before the
-        end of the observed window, with a rigid velocity correction per motion pattern fitted so that the simulation
-        from there renders like the training images of the window's last frames. The kinematic fit is smooth in
-        time, so its velocity lags a bounce or an impact by a few frames; the simulator, which knows gravity and the
-        contacts, turns the images of those frames into the velocity the future starts from."""
+        """Where the forecast starts (data assimilation): a state ``physics.assimilate`` frames before the end of the
+        observed window, chosen by how well the simulation from it forecasts the window's remaining frames.
+
+        Two starting states compete: the kinematic fit's (smooth in time, so its velocity and even its position lag
+        a bounce or an impact by a few frames) and the replay from t = 0's (the contacts where the simulator put
+        them, but any drift of the replay included). Nothing is fitted to the frames after the start, so the image
+        loss of the simulation from each start on every training view of those frames is an honest forecast score.
+
+        With ``physics.assimilate_iterations`` > 0 the chosen start also gets a rigid velocity correction per motion
+        pattern, fitted to all but the newest third of those frames (:func:`_held_out`) and kept only if it
+        forecasts the held-out frames better than the uncorrected start (a correction scored on the frames it was
+        fitted to wins by fitting them, whether or not it carries on into the future)."""
         t0 = time.monotonic() - self.stage_seconds.get("assimilate", 0.0)
         m, pc = self.model, self.config.physics
         n = self.timeline.train_frames
         begin = max(1, n - 1 - pc.assimilate)
+        iters = pc.assimilate_iterations
         if start == 0:
             with torch.no_grad():
                 m.forecast_twists.zero_()
-        m.forecast_start.fill_(begin)
-        opt = torch.optim.Adam([m.forecast_twists], lr=pc.lr_assimilate)
-        if opt_state is not None:
-            opt.load_state_dict(opt_state)
-        frames = list(range(begin + 1, n))
-        with torch.no_grad():
-            restart = m.restart_state(begin)  # the same start every iteration
-        for it in range(start, pc.assimilate_iterations):
-            out = m.simulate(frames, start=begin, twists=m.forecast_twists, restart=restart)
-            picks = self._sample(n, pc.views_per_iter, lowest=begin + 1)
-            img_loss = 0.0
-            for k, frame in picks:
-                (state,) = m.physical_states(out["x"][k - begin - 1 : k - begin], out["F"][k - begin - 1 : k - begin])
-                img, _, _ = m.render(state, frame.camera, self.bg)
-                img_loss = img_loss + image_loss(img, self._gt(frame), self.config.kinematic.lambda_dssim) / len(picks)
-            _finite(img_loss, "assimilate", it)
-            opt.zero_grad(set_to_none=True)
-            img_loss.backward()
-            opt.step()
-            tw = m.forecast_twists.detach()
-            rec = {"stage": "assimilate", "it": it + 1, "loss": float(img_loss.detach()), "start": begin,
-                   "linear": float(tw[:, :3].norm(dim=1).max()),
-                   "angular": float(tw[:, 3:].norm(dim=1).max())}  # fmt: skip
-            self.run.log(rec)
+                m.assimilated.zero_()
+        window = list(range(begin + 1, n))
+        if not window:  # a window of one frame after t = 0: the forecast starts at its last frame, as without
+            m.forecast_start.fill_(-1)
             self.stage_seconds["assimilate"] = time.monotonic() - t0
-            self._maybe_save("assimilate", it + 1, opt, force=it + 1 == pc.assimilate_iterations)
-            self.progress("assimilate", it + 1, pc.assimilate_iterations, rec)
+            return
+        m.forecast_start.fill_(begin)
+        scores = {s: self._forecast_score(begin, s, None, window) for s in FORECAST_SOURCES}
+        source = min(scores, key=scores.get)
+        m.forecast_source.fill_(FORECAST_SOURCES.index(source))
+        choice = {"frame": begin, "scores": scores, "source": source, "correction": None}
+        held = _held_out(begin, n)
+        if iters > 0 and held > 0:
+            row = FORECAST_SOURCES.index(source)
+            fit_frames, test_frames = window[:-held], window[-held:]
+            opt = torch.optim.Adam([m.forecast_twists], lr=pc.lr_assimilate)
+            if opt_state is not None:
+                opt.load_state_dict(opt_state)
+            with torch.no_grad():
+                restart = m.restart_state(begin, source=source)  # the same start every iteration
+            for it in range(start, iters):
+                out = m.simulate(fit_frames, start=begin, twists=m.forecast_twists, restart=restart)
+                picks = self._sample(fit_frames[-1] + 1, pc.views_per_iter, lowest=begin + 1)
+                img_loss = 0.0
+                for k, frame in picks:
+                    i = k - begin - 1
+                    (state,) = m.physical_states(out["x"][i : i + 1], out["F"][i : i + 1])
+                    img, _, _ = m.render(state, frame.camera, self.bg)
+                    img_loss = img_loss + image_loss(img, self._gt(frame), self.config.kinematic.lambda_dssim) / len(
+                        picks
+                    )
+                _finite(img_loss, "assimilate", it)
+                opt.zero_grad(set_to_none=True)
+                img_loss.backward()
+                opt.step()
+                tw = m.forecast_twists.detach()
+                with torch.no_grad():
+                    m.assimilated[row].copy_(tw)
+                rec = {"stage": "assimilate", "it": it + 1, "loss": float(img_loss.detach()), "start": begin,
+                       "source": source, "linear": float(tw[:, :3].norm(dim=1).max()),
+                       "angular": float(tw[:, 3:].norm(dim=1).max())}  # fmt: skip
+                self.run.log(rec)
+                self.stage_seconds["assimilate"] = time.monotonic() - t0
+                self._maybe_save("assimilate", it + 1, opt, force=it + 1 == iters)
+                self.progress("assimilate", it + 1, iters, rec)
+            plain = self._forecast_score(begin, source, None, test_frames)
+            corrected = self._forecast_score(begin, source, m.assimilated[row], test_frames)
+            keep = corrected < plain
+            with torch.no_grad():
+                m.forecast_twists.copy_(m.assimilated[row] if keep else torch.zeros_like(m.assimilated[row]))
+            choice["correction"] = {"fitted_to": fit_frames, "held_out": test_frames, "uncorrected": plain,
+                                    "corrected": corrected, "kept": bool(keep)}  # fmt: skip
+        self.forecast_choice = choice
         self.stage_seconds["assimilate"] = time.monotonic() - t0
+
+    def _forecast_score(self, begin: int, source: str, twists, frames: list[int]) -> float:
+        """The mean image loss (L1 + D-SSIM) over every training view of ``frames`` of the simulation from frame
+        ``begin``'s ``source`` state with the velocity correction ``twists`` (None: uncorrected); no gradient."""
+        m = self.model
+        with torch.no_grad():
+            restart = m.restart_state(begin, source=source)
+            out = m.simulate(frames, start=begin, twists=twists, restart=restart)
+            states = m.physical_states(out["x"], out["F"])
+            losses = [image_loss(m.render(st, f.camera, self.bg)[0], self._gt(f), self.config.kinematic.lambda_dssim)
+                      for st, k in zip(states, frames, strict=True) for f in self.train[k]]  # fmt: skip
+        return float(torch.stack([torch.as_tensor(v) for v in losses]).mean())
+
+
+def _held_out(begin: int, n: int) -> int:
+    """The newest frames of the window (a third of those after ``begin``, at least one) that the forecast-start
+    corrections are not fitted to and that score the starts; the correction keeps at least one frame of its own."""
+    after = n - 1 - begin
+    return max(1, min(after - 1, round(after / 3))) if after >= 2 else 0
 
 
 def _clamped(m: CausalGS, values: np.ndarray) -> np.ndarray:
@@ -442,6 +498,7 @@ def fit(data_dir, out, config: FitConfig | None = None, *, resume: bool = False,
                                "fps": trainer.timeline.fps, "train_frames": trainer.timeline.train_frames})  # fmt: skip
     if state is not None and state["stage"] == "done":
         model = _load_model(trainer, state)
+        trainer.forecast_choice = state.get("forecast_choice")
     else:
         model = trainer.fit(state)
     from causalgs.model.export import export_run
@@ -452,7 +509,8 @@ def fit(data_dir, out, config: FitConfig | None = None, *, resume: bool = False,
     write_json(run.info_path, {"data": str(Path(data_dir).resolve()), "status": "done",
                                "fps": trainer.timeline.fps, "train_frames": trainer.timeline.train_frames,
                                "stage_seconds": trainer.stage_seconds,
-                               "total_seconds": sum(trainer.stage_seconds.values())})  # fmt: skip
+                               "total_seconds": sum(trainer.stage_seconds.values()),
+                               "forecast_start": trainer.forecast_choice})  # fmt: skip
     return model
 
 

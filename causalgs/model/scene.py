@@ -85,9 +85,13 @@ class CausalGS(torch.nn.Module):
         self.register_buffer("box", torch.zeros(2, 3, dtype=torch.float64))  # simulation box lo, hi (0 = unset)
         self.effect_params = torch.nn.Parameter(torch.zeros(0, dtype=torch.float64))
         # The forecast's start (the assimilation stage, see Trainer._assimilate): a per-pattern twist added to the
-        # observed velocities at frame ``forecast_start`` (-1: none; the forecast starts at the last observed frame).
+        # velocities of the state at frame ``forecast_start`` (-1: none; the forecast starts at the last observed
+        # frame), that state taken from FORECAST_SOURCES[forecast_source]: the kinematic fit or the replay from t = 0.
         self.forecast_twists = torch.nn.Parameter(torch.zeros(config.fields.patterns, 6))
         self.register_buffer("forecast_start", torch.tensor(-1, dtype=torch.int64))
+        self.register_buffer("forecast_source", torch.tensor(0, dtype=torch.int64))
+        # each source's fitted correction (the stage chooses between them and none; kept to resume and inspect)
+        self.register_buffer("assimilated", torch.zeros(len(FORECAST_SOURCES), config.fields.patterns, 6))
         self.particles: Particles | None = None
         self._sim: Simulator | None = None
 
@@ -114,6 +118,9 @@ class CausalGS(torch.nn.Module):
         if prefix + "forecast_start" not in state_dict:  # saved before the assimilation stage existed
             state_dict[prefix + "forecast_start"] = torch.tensor(-1, dtype=torch.int64)
             state_dict[prefix + "forecast_twists"] = torch.zeros_like(self.forecast_twists)
+        if prefix + "forecast_source" not in state_dict:  # saved before the replayed start existed: observed
+            state_dict[prefix + "forecast_source"] = torch.tensor(0, dtype=torch.int64)
+            state_dict[prefix + "assimilated"] = torch.zeros_like(self.assimilated)
         if prefix + "has_tracked" not in state_dict:  # a model saved before the tracked copy existed
             for k in [k for k in state_dict if k.startswith(prefix + "fields.")]:
                 state_dict[prefix + "tracked." + k[len(prefix + "fields.") :]] = state_dict[k]
@@ -314,10 +321,22 @@ class CausalGS(torch.nn.Module):
                            self.effect_params.to(dt), C0=C0, F0=F0)  # fmt: skip
         return {"x": x, "v": v, "F": F, **c}
 
-    def restart_state(self, start: int, causes: dict | None = None) -> dict[str, torch.Tensor]:
-        """The constant state a simulation from frame ``start`` > 0 begins with: :meth:`observed_state`, with the
-        preloaded F of bodies at rest (``physics.preload``), in the simulator's dtype."""
+    def restart_state(self, start: int, causes: dict | None = None,
+                      source: str = "observed") -> dict[str, torch.Tensor]:  # fmt: skip
+        """The constant state a simulation from frame ``start`` > 0 begins with, in the simulator's dtype.
+
+        - ``source="observed"``: :meth:`observed_state` (the kinematic fit there), with the preloaded F of bodies at
+          rest (``physics.preload``);
+        - ``source="simulated"``: the replay from t = 0's particles at ``start`` (x, v, F; C = 0). The kinematic fit
+          is smooth in time and lags a bounce by centimetres; the replay has the bounce where the contact put it."""
         dt = _ti.torch_dtype()
+        if source == "simulated":
+            with torch.no_grad():
+                out = self.simulate([int(start)])
+            F = out["F"][0].detach()
+            return {"x": out["x"][0].detach(), "v": out["v"][0].detach(), "C": torch.zeros_like(F), "F": F}
+        if source != "observed":
+            raise CausalGSError(f"unknown forecast start source '{source}' (choose from {', '.join(FORECAST_SOURCES)})")
         s = self.observed_state(start)
         F = s["F"]
         if self.config.physics.preload > 0:
@@ -396,8 +415,8 @@ class CausalGS(torch.nn.Module):
         """Particle x, v, F [T, P, ...] at frame indices after the observed window, simulated with the inferred
         materials and effects from the observed state: the prediction of the future from what has been seen, rather
         than a replay of the whole sequence from t = 0. After the assimilation stage it starts a few frames before
-        the end of the window, from the velocity that made the simulation match those frames' images; otherwise
-        at the last observed frame."""
+        the end of the window, from the state (tracked, or replayed from t = 0) and the velocity correction that
+        made the simulation match those frames' images best; otherwise at the last observed frame's tracked state."""
         last = self.train_frames - 1
         frames = [int(k) for k in frames]
         if not frames or min(frames) <= last:
@@ -405,8 +424,9 @@ class CausalGS(torch.nn.Module):
         start = int(self.forecast_start)
         if start < 0:
             return self.simulate(frames, start=last)
-        out = self.simulate(frames, start=start, twists=self.forecast_twists.detach())
-        return out
+        source = FORECAST_SOURCES[int(self.forecast_source)]
+        restart = self.restart_state(start, source=source)
+        return self.simulate(frames, start=start, twists=self.forecast_twists.detach(), restart=restart)
 
     def physical_states(self, x: torch.Tensor, F: torch.Tensor) -> list[State]:
         """Gaussian states (means, covariances) for simulated particle states x [T, P, 3], F [T, P, 3, 3]."""
@@ -430,6 +450,8 @@ class CausalGS(torch.nn.Module):
 
 
 VELOCITY_FRAMES = 6
+# where a forecast's starting state comes from (the buffer ``forecast_source`` indexes this)
+FORECAST_SOURCES = ("observed", "simulated")
 
 
 def _resting(xs: torch.Tensor, fps: float) -> torch.Tensor:

@@ -244,11 +244,12 @@ def test_the_kinematic_fit_is_kept_through_the_physical_stage(fitted):
     assert torch.equal(a, b)
     # A model saved before the tracked copy (and the assimilated forecast start) existed loads with the live fields
     # as its kinematic path and forecasts from the last observed frame.
-    old = ("has_tracked", "forecast_start", "forecast_twists")
+    old = ("has_tracked", "forecast_start", "forecast_twists", "forecast_source", "assimilated")
     state = {k: v for k, v in after.state_dict().items() if not k.startswith("tracked.") and k not in old}
     after.load_state_dict(state)
     assert not bool(after.has_tracked) and after.kinematic_fields is after.fields
     assert int(after.forecast_start) == -1 and float(after.forecast_twists.abs().max()) == 0.0
+    assert int(after.forecast_source) == 0
 
 
 def test_observed_state_deformation_is_the_jacobian_of_the_kinematic_map(fitted):
@@ -337,25 +338,63 @@ def test_forecast_starts_from_the_last_observed_state(fitted):
     assert not torch.equal(a[k + 1].means, b[k + 1].means)
 
 
-def test_assimilation_fits_the_forecast_start_to_the_last_frames(fitted):
-    """The assimilation stage starts the forecast physics.assimilate frames before the end of the window, with a
-    per-pattern velocity correction trained on those frames' images; the forecast is exactly that simulation."""
-    from causalgs.model.fit import load_model
+def test_assimilation_chooses_the_forecast_start_by_its_forecast(fitted):
+    """The assimilation stage starts the forecast physics.assimilate frames before the end of the window, from the
+    tracked or the replayed state, whichever forecasts the window's remaining frames better; a velocity correction
+    is fitted to the older frames of those and kept only if it forecasts the held-out newest ones better. The
+    forecast is exactly the chosen simulation."""
+    from causalgs.model.fit import _held_out, load_model
+    from causalgs.model.scene import FORECAST_SOURCES
 
     m, _, tl = load_model(fitted)
     n = tl.train_frames
     begin = max(1, n - 1 - m.config.physics.assimilate)
     assert int(m.forecast_start) == begin
-    tw = m.forecast_twists.detach()
-    assert float(tw.abs().max()) > 0
+    choice = json.loads((fitted / "run.json").read_text())["forecast_start"]
+    assert choice["frame"] == begin and set(choice["scores"]) == set(FORECAST_SOURCES)
+    assert all(np.isfinite(v) and v > 0 for v in choice["scores"].values())
+    assert choice["source"] == min(choice["scores"], key=choice["scores"].get)
+    source = choice["source"]
+    row = FORECAST_SOURCES.index(source)
+    assert FORECAST_SOURCES[int(m.forecast_source)] == source
+    # the correction: fitted (3 iterations) to all but the held-out newest frames, kept only if it scores better there
     log = [json.loads(line) for line in (fitted / "log.jsonl").read_text().splitlines()]
-    assert [r["it"] for r in log if r["stage"] == "assimilate"] == [1, 2, 3]
+    rows = [r for r in log if r["stage"] == "assimilate"]
+    assert [r["it"] for r in rows] == [1, 2, 3] and {r["source"] for r in rows} == {source}
+    corr = choice["correction"]
+    held = _held_out(begin, n)
+    assert held >= 1 and corr["held_out"] == list(range(n - held, n))
+    assert corr["fitted_to"] == list(range(begin + 1, n - held))
+    assert float(m.assimilated[row].abs().max()) > 0 and float(m.assimilated[1 - row].abs().max()) == 0
+    assert corr["kept"] == (corr["corrected"] < corr["uncorrected"])
+    tw = m.assimilated[row] if corr["kept"] else torch.zeros_like(m.assimilated[row])
+    assert torch.equal(m.forecast_twists.detach(), tw)
     future = [n, n + 1]
     with torch.no_grad():
         a = m.forecast(future)["x"]
-        b = m.simulate(future, start=begin, twists=tw)["x"]
-        c = m.simulate(future, start=begin)["x"]
+        b = m.simulate(future, start=begin, twists=tw, restart=m.restart_state(begin, source=source))["x"]
+        other = FORECAST_SOURCES[1 - row]
+        c = m.simulate(future, start=begin, twists=tw, restart=m.restart_state(begin, source=other))["x"]
     assert torch.equal(a, b) and not torch.equal(a, c)
+
+
+def test_a_replayed_start_continues_the_replay(fitted):
+    """The "simulated" starting state is the replay from t = 0 at that frame (x, v, F); continuing from it (with the
+    affine velocity C reset) stays with the uninterrupted replay to a small fraction of a cell."""
+    from causalgs.model.fit import load_model
+
+    m, _, tl = load_model(fitted)
+    k = tl.train_frames - 4
+    with torch.no_grad():
+        replay = m.simulate([k, k + 1, k + 2])
+        s = m.restart_state(k, source="simulated")
+        cont = m.simulate([k + 1, k + 2], start=k, restart=s)
+    assert torch.equal(s["x"], replay["x"][0]) and torch.equal(s["v"], replay["v"][0])
+    assert torch.equal(s["F"], replay["F"][0]) and float(s["C"].abs().max()) == 0.0
+    gap = (cont["x"] - replay["x"][1:]).norm(dim=-1).max()
+    assert float(gap) < 0.1 * m.cell, (float(gap), m.cell)
+    with pytest.raises(CausalGSError, match="unknown forecast start source 'later'"):
+        m.restart_state(k, source="later")
 
 
 def test_pattern_velocity_is_a_blend_of_rigid_twists(fitted):
