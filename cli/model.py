@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import click
@@ -176,9 +177,13 @@ def eval_(run, dynamics, lpips_nets, as_json, device):
         for o in rec["objects"]:
             if o.get("gaussians"):
                 rel = o["velocity_error_relative"]
+                spin = ""
+                if o.get("omega_model") is not None:
+                    spin = (f", spin {math.hypot(*o['omega_model']):.2f} rad/s "
+                            f"(true {math.hypot(*o['omega_true']):.2f})")  # fmt: skip
                 click.echo(f"object {o['id']} {o['name']}: E {o['E_model']:.3g} (true {o['E_true']:.3g}), initial "
                            f"velocity error {o['velocity_error_mean']:.3f} m/s"
-                           + (f" ({100 * rel:.0f}% of its speed)" if rel is not None else ""))  # fmt: skip
+                           + (f" ({100 * rel:.0f}% of its speed)" if rel is not None else "") + spin)  # fmt: skip
         if rec["stiffness_order_ok"] is not None:
             click.echo(f"stiffness order of the objects: {'right' if rec['stiffness_order_ok'] else 'wrong'}")
     click.echo(f"Wrote {run / 'metrics.json'}")

@@ -3,7 +3,10 @@
 Every dynamic Gaussian of the model is assigned to the true object whose rest particle is nearest to it (within
 ``reach`` metres; farther ones are left out). Per object this reports the model's median Young's modulus, Poisson
 ratio and density at those Gaussians and the error of the learned initial velocity against the true rigid initial
-velocity v + ω × (p − centre), as the mean vector error and relative to the true mean speed. ``stiffness_order_ok``
+velocity v + ω × (p − centre), as the mean vector error and relative to the true mean speed, and the learned
+spin: ω of the least-squares rigid motion a + ω × (p − centre) through the learned velocities, beside the true ω
+(a spinning body's texture turns with it; a velocity error of a few per cent can hide a spin that is not learned at
+all). ``stiffness_order_ok``
 says whether the objects' median E rank as the true E do (the question for scenes with bodies of different
 materials).
 """
@@ -45,6 +48,7 @@ def recovery_report(physics_npz, data_dir, reach: float = 0.03) -> dict | None:
         v_true = np.asarray(o.get("velocity", [0, 0, 0])) + np.cross(np.asarray(o.get("omega", [0, 0, 0])),
                                                                       means[sel] - centre)  # fmt: skip
         err = np.linalg.norm(vel[sel] - v_true, axis=1)
+        omega = rigid_spin(means[sel] - centre, vel[sel])
         speed = float(np.linalg.norm(v_true, axis=1).mean())
         rows.append({
             "id": oid, "name": o.get("name"), "gaussians": int(sel.sum()),
@@ -54,6 +58,8 @@ def recovery_report(physics_npz, data_dir, reach: float = 0.03) -> dict | None:
             "velocity_true_mean": v_true.mean(0).tolist(), "velocity_model_mean": vel[sel].mean(0).tolist(),
             "velocity_error_mean": float(err.mean()),
             "velocity_error_relative": float(err.mean() / speed) if speed > 0 else None,
+            "omega_true": np.asarray(o.get("omega", [0, 0, 0]), dtype=np.float64).tolist(),
+            "omega_model": None if omega is None else omega.tolist(),
         })  # fmt: skip
     found = [r for r in rows if r.get("gaussians")]
     order_ok = None
@@ -64,3 +70,21 @@ def recovery_report(physics_npz, data_dir, reach: float = 0.03) -> dict | None:
     unassigned = int((dyn & (label < 0)).sum())
     return {"objects": rows, "stiffness_order_ok": order_ok, "dynamic_gaussians_unassigned": unassigned,
             "reach_m": reach}  # fmt: skip
+
+
+def rigid_spin(r: np.ndarray, v: np.ndarray) -> np.ndarray | None:
+    """ω [3] of the least-squares rigid velocity field v_i ≈ a + ω × r_i through velocities ``v`` [n, 3] at offsets
+    ``r`` [n, 3]; None when the points are too few or collinear for ω to be determined."""
+    r, v = np.asarray(r, dtype=np.float64), np.asarray(v, dtype=np.float64)
+    if len(r) < 3:
+        return None
+    rc = r - r.mean(0)  # ω × r with r about the points' centroid: the translation separates from ω
+    A = np.zeros((len(r), 3, 3))
+    A[:, 0, 1], A[:, 0, 2] = rc[:, 2], -rc[:, 1]  # ω × r = -[r]× ω
+    A[:, 1, 0], A[:, 1, 2] = -rc[:, 2], rc[:, 0]
+    A[:, 2, 0], A[:, 2, 1] = rc[:, 1], -rc[:, 0]
+    A = A.reshape(-1, 3)
+    if np.linalg.matrix_rank(A, tol=1e-9 * max(1.0, float(np.abs(A).max()))) < 3:
+        return None
+    b = (v - v.mean(0)).reshape(-1)
+    return np.linalg.lstsq(A, b, rcond=None)[0]
