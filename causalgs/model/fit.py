@@ -394,7 +394,9 @@ class Trainer:
             self.stage_seconds["assimilate"] = time.monotonic() - t0
             return
         m.forecast_start.fill_(begin)
-        scores = {s: self._forecast_score(begin, s, None, window) for s in FORECAST_SOURCES}
+        with torch.no_grad():  # constants; the replayed one is a whole replay, so each is computed once
+            starts = {s: m.restart_state(begin, source=s) for s in FORECAST_SOURCES}
+        scores = {s: self._forecast_score(begin, starts[s], None, window) for s in FORECAST_SOURCES}
         source = min(scores, key=scores.get)
         m.forecast_source.fill_(FORECAST_SOURCES.index(source))
         choice = {"frame": begin, "scores": scores, "source": source, "correction": None}
@@ -405,8 +407,7 @@ class Trainer:
             opt = torch.optim.Adam([m.forecast_twists], lr=pc.lr_assimilate)
             if opt_state is not None:
                 opt.load_state_dict(opt_state)
-            with torch.no_grad():
-                restart = m.restart_state(begin, source=source)  # the same start every iteration
+            restart = starts[source]  # the same start every iteration
             for it in range(start, iters):
                 out = m.simulate(fit_frames, start=begin, twists=m.forecast_twists, restart=restart)
                 picks = self._sample(fit_frames[-1] + 1, pc.views_per_iter, lowest=begin + 1)
@@ -432,8 +433,8 @@ class Trainer:
                 self.stage_seconds["assimilate"] = time.monotonic() - t0
                 self._maybe_save("assimilate", it + 1, opt, force=it + 1 == iters)
                 self.progress("assimilate", it + 1, iters, rec)
-            plain = self._forecast_score(begin, source, None, test_frames)
-            corrected = self._forecast_score(begin, source, m.assimilated[row], test_frames)
+            plain = self._forecast_score(begin, restart, None, test_frames)
+            corrected = self._forecast_score(begin, restart, m.assimilated[row], test_frames)
             keep = corrected < plain
             with torch.no_grad():
                 m.forecast_twists.copy_(m.assimilated[row] if keep else torch.zeros_like(m.assimilated[row]))
@@ -442,12 +443,12 @@ class Trainer:
         self.forecast_choice = choice
         self.stage_seconds["assimilate"] = time.monotonic() - t0
 
-    def _forecast_score(self, begin: int, source: str, twists, frames: list[int]) -> float:
+    def _forecast_score(self, begin: int, restart: dict, twists, frames: list[int]) -> float:
         """The mean image loss (L1 + D-SSIM) over every training view of ``frames`` of the simulation from frame
-        ``begin``'s ``source`` state with the velocity correction ``twists`` (None: uncorrected); no gradient."""
+        ``begin`` from the state ``restart`` (:meth:`CausalGS.restart_state`) with the velocity correction ``twists``
+        (None: uncorrected); no gradient."""
         m = self.model
         with torch.no_grad():
-            restart = m.restart_state(begin, source=source)
             out = m.simulate(frames, start=begin, twists=twists, restart=restart)
             states = m.physical_states(out["x"], out["F"])
             losses = [image_loss(m.render(st, f.camera, self.bg)[0], self._gt(f), self.config.kinematic.lambda_dssim)
