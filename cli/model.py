@@ -54,7 +54,8 @@ def fit(data, out, preset, config_path, overrides, no_physics, resume, seed, dev
       canonical  3D Gaussians at t = 0 (densified and pruned)
       kinematic  physics codes and velocity field through renders of the moving Gaussians
       physics    MPM particles from the dynamic Gaussians; materials, initial velocity and effect
-                 parameters trained through the differentiable simulator
+                 parameters trained through the differentiable simulator; then one factor on every
+                 E chosen by how well the replay fits the images (physics.calibrate; [] for off)
       assimilate where the forecast starts: physics.assimilate frames before the window's end, from the
                  tracked or the replayed state, whichever forecasts the frames after it better (0: off)
     An interrupted fit continues with --resume. The resolved config is saved as config.toml.

@@ -12,6 +12,8 @@
    and the learned effect parameters, through the checkpointed Taichi backward. Even iterations roll out from t = 0
    over a widening window (the causes); odd ones are shooting segments of ``shooting`` frames from the tracked state
    at a random observed frame (materials and effects from short rollouts that start where the bodies were seen).
+   The stage ends with the stiffness calibration (:meth:`Trainer._calibrate`): one factor on every particle's E,
+   chosen by how well the replay from t = 0 fits the training images.
 
 Run folder: ``config.toml`` (resolved), ``run.json`` (data path, stage times), ``log.jsonl`` (one line per
 iteration), ``losses.png``, ``checkpoint.pt`` (rewritten atomically at least every ``checkpoint_seconds`` and
@@ -146,6 +148,7 @@ class Trainer:
         self.model: CausalGS | None = None
         self.stage_seconds: dict[str, float] = {}
         self.forecast_choice: dict | None = None  # the assimilation stage's scores of the forecast's starts
+        self.calibration: dict | None = None  # the stiffness calibration's scores and factor
         self._last_save = time.monotonic()
 
     # -- shared -----------------------------------------------------------------------------------------------------
@@ -181,6 +184,7 @@ class Trainer:
             "torch_rng": torch.get_rng_state(),
             "stage_seconds": self.stage_seconds,
             "forecast_choice": self.forecast_choice,
+            "calibration": self.calibration,
         }
 
     def _maybe_save(self, stage: str, it: int, optimizer, force: bool = False) -> None:
@@ -204,6 +208,7 @@ class Trainer:
             torch.set_rng_state(resume["torch_rng"])
             self.stage_seconds = dict(resume.get("stage_seconds", {}))
             self.forecast_choice = resume.get("forecast_choice")
+            self.calibration = resume.get("calibration")
             self.run.truncate_log(start_stage, start_it)
         order = STAGES.index(start_stage)
         if order == 0:
@@ -364,7 +369,38 @@ class Trainer:
             self.stage_seconds["physics"] = time.monotonic() - t0
             self._maybe_save("physics", it + 1, opt, force=it + 1 == pc.iterations)
             self.progress("physics", it + 1, pc.iterations, rec)
+        if pc.calibrate:
+            self._calibrate()
         self.stage_seconds["physics"] = time.monotonic() - t0
+
+    def _calibrate(self) -> None:
+        """The stiffness calibration: one factor on every particle's E, chosen among ``physics.calibrate`` by the
+        image loss (L1 + D-SSIM) of the replay from t = 0 on every training view of ``calibrate_frames`` observed
+        frames. The factor 1 (the trained materials) is always among the candidates, so the replay never fits the
+        images worse than before. Scores go to the log and to ``run.json`` (``stiffness_calibration``)."""
+        m, pc = self.model, self.config.physics
+        n = self.timeline.train_frames
+        keys = [k for k in sorted(self.train) if k >= 1]
+        frames = sorted({keys[round(i * (len(keys) - 1) / max(1, pc.calibrate_frames - 1))]
+                         for i in range(min(pc.calibrate_frames, len(keys)))})  # fmt: skip
+        if not frames or n < 2:
+            return
+        base = float(m.log_stiffness)
+        scores = {}
+        for factor in sorted({1.0, *(float(a) for a in pc.calibrate)}):
+            with torch.no_grad():
+                m.log_stiffness.fill_(base + math.log(factor))
+                out = m.simulate(frames)
+                states = m.physical_states(out["x"], out["F"])
+                lam = self.config.kinematic.lambda_dssim
+                losses = [image_loss(m.render(st, f.camera, self.bg)[0], self._gt(f), lam)
+                          for st, k in zip(states, frames, strict=True) for f in self.train[k]]  # fmt: skip
+            scores[factor] = float(torch.stack(losses).mean())
+        best = min(scores, key=scores.get)
+        with torch.no_grad():
+            m.log_stiffness.fill_(base + math.log(best))
+        self.calibration = {"frames": frames, "scores": {f"{a:g}": v for a, v in scores.items()}, "factor": best}
+        self.run.log({"stage": "physics", "it": pc.iterations, "calibration": self.calibration})
 
     def _assimilate(self, start: int, opt_state) -> None:
         """Where the forecast starts (data assimilation): a state ``physics.assimilate`` frames before the end of the
@@ -500,6 +536,7 @@ def fit(data_dir, out, config: FitConfig | None = None, *, resume: bool = False,
     if state is not None and state["stage"] == "done":
         model = _load_model(trainer, state)
         trainer.forecast_choice = state.get("forecast_choice")
+        trainer.calibration = state.get("calibration")
     else:
         model = trainer.fit(state)
     from causalgs.model.export import export_run
@@ -511,7 +548,8 @@ def fit(data_dir, out, config: FitConfig | None = None, *, resume: bool = False,
                                "fps": trainer.timeline.fps, "train_frames": trainer.timeline.train_frames,
                                "stage_seconds": trainer.stage_seconds,
                                "total_seconds": sum(trainer.stage_seconds.values()),
-                               "forecast_start": trainer.forecast_choice})  # fmt: skip
+                               "forecast_start": trainer.forecast_choice,
+                               "stiffness_calibration": trainer.calibration})  # fmt: skip
     return model
 
 

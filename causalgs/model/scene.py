@@ -92,6 +92,8 @@ class CausalGS(torch.nn.Module):
         self.register_buffer("forecast_source", torch.tensor(0, dtype=torch.int64))
         # each source's fitted correction (the stage chooses between them and none; kept to resume and inspect)
         self.register_buffer("assimilated", torch.zeros(len(FORECAST_SOURCES), config.fields.patterns, 6))
+        # log of the factor on every particle's Young's modulus chosen by the stiffness calibration (Trainer._calibrate)
+        self.register_buffer("log_stiffness", torch.zeros((), dtype=torch.float64))
         self.particles: Particles | None = None
         self._sim: Simulator | None = None
 
@@ -121,6 +123,8 @@ class CausalGS(torch.nn.Module):
         if prefix + "forecast_source" not in state_dict:  # saved before the replayed start existed: observed
             state_dict[prefix + "forecast_source"] = torch.tensor(0, dtype=torch.int64)
             state_dict[prefix + "assimilated"] = torch.zeros_like(self.assimilated)
+        if prefix + "log_stiffness" not in state_dict:  # saved before the stiffness calibration existed
+            state_dict[prefix + "log_stiffness"] = torch.zeros((), dtype=torch.float64)
         if prefix + "has_tracked" not in state_dict:  # a model saved before the tracked copy existed
             for k in [k for k in state_dict if k.startswith(prefix + "fields.")]:
                 state_dict[prefix + "tracked." + k[len(prefix + "fields.") :]] = state_dict[k]
@@ -294,7 +298,11 @@ class CausalGS(torch.nn.Module):
         fit's mixtures (the motion segmentation is a constant here: materials are learned for the bodies it found)."""
         with torch.no_grad():
             h = self.mixtures(x)
-        return self.fields.materials(x, h)
+        out = self.fields.materials(x, h)
+        if float(self.log_stiffness) != 0.0:  # the calibrated factor, kept inside the configured range
+            lo, hi = self.config.fields.E_range
+            out["E"] = (out["E"] * torch.exp(self.log_stiffness).to(out["E"].dtype)).clamp(lo, hi)
+        return out
 
     def simulate(self, frames, start: int = 0, twists: torch.Tensor | None = None,
                  restart: dict | None = None) -> dict[str, torch.Tensor]:  # fmt: skip

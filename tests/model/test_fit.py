@@ -22,7 +22,7 @@ TINY = {
                   "max_gaussians": 3000, "sh_degree": 0, "log_every": 20},
     "kinematic": {"iterations": 30, "window_start": 3},
     "physics": {"iterations": 3, "res": 24, "budget": 300, "window_start": 4, "lr_mat": 0.05, "assimilate": 4,
-                "assimilate_iterations": 3},
+                "assimilate_iterations": 3, "calibrate": [0.5, 2.0], "calibrate_frames": 4},
 }  # fmt: skip
 
 
@@ -512,3 +512,30 @@ def test_a_particle_limit_coarsens_the_grid_not_the_fill(fitted):
     fill = p.vol[p.gaussian < 0]
     assert len(fill) > 0 and float(fill.max()) == pytest.approx((m.cell / 2) ** 3, rel=1e-6)
     assert bool(((p.x0 >= m.box[0] + m.cell) & (p.x0 <= m.box[1] - 2 * m.cell)).all())
+
+
+def test_the_stiffness_calibration_keeps_the_best_replaying_factor(fitted):
+    """One factor on every particle's E, chosen by the replay's image loss: the kept factor is the argmin of the
+    recorded scores (the trained materials, factor 1, always among them), and the model's and the exported moduli
+    are the fields' times it."""
+    from causalgs.model.config import FitConfig, from_dict, to_dict
+    from causalgs.model.fit import load_model
+
+    cal = json.loads((fitted / "run.json").read_text())["stiffness_calibration"]
+    scores = {float(a): v for a, v in cal["scores"].items()}
+    assert set(scores) == {0.5, 1.0, 2.0} and len(cal["frames"]) == 4
+    assert cal["factor"] == min(scores, key=scores.get)
+    m, _, _ = load_model(fitted)
+    assert float(m.log_stiffness) == pytest.approx(np.log(cal["factor"]), abs=1e-12)
+    x = m.particles.x0.to(m.fields.centres.dtype)
+    with torch.no_grad():
+        E_model = m.materials(x)["E"]
+        E_fields = m.fields.materials(x, m.mixtures(x))["E"]
+    lo, hi = m.config.fields.E_range
+    assert torch.allclose(E_model, (E_fields * cal["factor"]).clamp(lo, hi), rtol=1e-6)
+    npz = np.load(fitted / "physics.npz")
+    assert np.allclose(npz["particles_E"], E_model.numpy(), rtol=1e-6)
+    d = to_dict(FitConfig.preset_config("quick"))
+    d["physics"]["calibrate"] = [0.5, 0.0]
+    with pytest.raises(CausalGSError, match="physics.calibrate"):
+        from_dict(FitConfig, d)
