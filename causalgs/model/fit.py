@@ -390,12 +390,7 @@ class Trainer:
         for factor in sorted({1.0, *(float(a) for a in pc.calibrate)}):
             with torch.no_grad():
                 m.log_stiffness.fill_(base + math.log(factor))
-                out = m.simulate(frames)
-                states = m.physical_states(out["x"], out["F"])
-                lam = self.config.kinematic.lambda_dssim
-                losses = [image_loss(m.render(st, f.camera, self.bg)[0], self._gt(f), lam)
-                          for st, k in zip(states, frames, strict=True) for f in self.train[k]]  # fmt: skip
-            scores[factor] = float(torch.stack(losses).mean())
+                scores[factor] = self._simulated_score(m.simulate(frames), frames)
         best = min(scores, key=scores.get)
         with torch.no_grad():
             m.log_stiffness.fill_(base + math.log(best))
@@ -483,13 +478,18 @@ class Trainer:
         """The mean image loss (L1 + D-SSIM) over every training view of ``frames`` of the simulation from frame
         ``begin`` from the state ``restart`` (:meth:`CausalGS.restart_state`) with the velocity correction ``twists``
         (None: uncorrected); no gradient."""
-        m = self.model
         with torch.no_grad():
-            out = m.simulate(frames, start=begin, twists=twists, restart=restart)
-            states = m.physical_states(out["x"], out["F"])
-            losses = [image_loss(m.render(st, f.camera, self.bg)[0], self._gt(f), self.config.kinematic.lambda_dssim)
-                      for st, k in zip(states, frames, strict=True) for f in self.train[k]]  # fmt: skip
-        return float(torch.stack([torch.as_tensor(v) for v in losses]).mean())
+            out = self.model.simulate(frames, start=begin, twists=twists, restart=restart)
+            return self._simulated_score(out, frames)
+
+    def _simulated_score(self, out: dict, frames: list[int]) -> float:
+        """The mean image loss (L1 + D-SSIM) over every training view of ``frames`` of simulated particle states
+        ``out`` (x, F at those frames, as :meth:`CausalGS.simulate` returns them); call without gradients."""
+        m = self.model
+        states = m.physical_states(out["x"], out["F"])
+        losses = [image_loss(m.render(st, f.camera, self.bg)[0], self._gt(f), self.config.kinematic.lambda_dssim)
+                  for st, k in zip(states, frames, strict=True) for f in self.train[k]]  # fmt: skip
+        return float(torch.stack(losses).mean())
 
 
 def _held_out(begin: int, n: int) -> int:
