@@ -56,8 +56,9 @@ def fit(data, out, preset, config_path, overrides, no_physics, resume, seed, dev
       physics    MPM particles from the dynamic Gaussians; materials, initial velocity and effect
                  parameters trained through the differentiable simulator; then one factor on every
                  E chosen by how well the replay fits the images (physics.calibrate; [] for off)
-      assimilate where the forecast starts: physics.assimilate frames before the window's end, from the
-                 tracked or the replayed state, whichever forecasts the frames after it better (0: off)
+      assimilate where the forecast starts: 12 or 6 frames before the window's end
+                 (physics.assimilate, physics.assimilate_scored), from the tracked or the replayed state,
+                 whichever forecasts the newest 6 observed frames best (assimilate=0: off)
     An interrupted fit continues with --resume. The resolved config is saved as config.toml.
     """
     from causalgs import _ti

@@ -3,8 +3,9 @@
 Dynamics (``--dynamics``):
 
 - ``mpm``: the model's prediction: inside the observed window the simulator from t = 0 with the inferred causes; after
-  it the simulator continuing from the last observed frame's state (the kinematic fit's positions, deformation and
-  velocity there) with the inferred materials and effects, as a forecast starts from the latest measurement;
+  it the simulator with the inferred materials and effects continuing from the forecast's start
+  (:meth:`CausalGS.forecast`: the state near the end of the window, tracked or replayed, that forecast the newest
+  observed frames best), as a forecast starts from the latest measurement;
 - ``mpm-open``: the simulator from t = 0 for every frame (open loop: the whole sequence replayed from the causes);
 - ``velocity``: the kinematic field integrated past the observed window (f_weight(t) extrapolated);
 - ``frozen``: the scene held at the last observed frame by the kinematic-only model (a baseline);

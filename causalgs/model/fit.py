@@ -398,39 +398,45 @@ class Trainer:
         self.run.log({"stage": "physics", "it": pc.iterations, "calibration": self.calibration})
 
     def _assimilate(self, start: int, opt_state) -> None:
-        """Where the forecast starts (data assimilation): a state ``physics.assimilate`` frames before the end of the
-        observed window, chosen by how well the simulation from it forecasts the window's remaining frames.
+        """Where the forecast starts (data assimilation): a state at one of several frames near the end of the
+        observed window, chosen by how well the simulation from it forecasts the window's newest frames.
 
-        Two starting states compete: the kinematic fit's (smooth in time, so its velocity and even its position lag
-        a bounce or an impact by a few frames) and the replay from t = 0's (the contacts where the simulator put
-        them, but any drift of the replay included). Nothing is fitted to the frames after the start, so the image
-        loss of the simulation from each start on every training view of those frames is an honest forecast score.
+        The candidate starts are the frames ``physics.assimilate``, then every ``physics.assimilate_scored`` fewer,
+        down to ``assimilate_scored`` frames before the window's end, each with two states: the kinematic fit's
+        (smooth in time, so its velocity, the slope of the tracked positions over the frames up to the start, is
+        wrong for a few frames after a bounce or an impact) and the replay from t = 0's (the contacts where the
+        simulator put them, but any drift of the replay included). Every candidate is scored on the same newest
+        ``assimilate_scored`` frames, which none of them starts after: the image loss on every training view of the
+        simulation from it. A later start has less time to drift and an earlier one may avoid a state corrupted by a
+        contact; the scores decide, as the future's forecast is the same simulation continued.
 
         With ``physics.assimilate_iterations`` > 0 the chosen start also gets a rigid velocity correction per motion
-        pattern, fitted to all but the newest third of those frames (:func:`_held_out`) and kept only if it
+        pattern, fitted to all but the newest third of the frames after it (:func:`_held_out`) and kept only if it
         forecasts the held-out frames better than the uncorrected start (a correction scored on the frames it was
         fitted to wins by fitting them, whether or not it carries on into the future)."""
         t0 = time.monotonic() - self.stage_seconds.get("assimilate", 0.0)
         m, pc = self.model, self.config.physics
         n = self.timeline.train_frames
-        begin = max(1, n - 1 - pc.assimilate)
         iters = pc.assimilate_iterations
         if start == 0:
             with torch.no_grad():
                 m.forecast_twists.zero_()
                 m.assimilated.zero_()
-        window = list(range(begin + 1, n))
-        if not window:  # a window of one frame after t = 0: the forecast starts at its last frame, as without
+        begins, scored = _forecast_starts(n, pc.assimilate, pc.assimilate_scored)
+        if not begins:  # too short a window, or off: the forecast starts at the last observed frame
             m.forecast_start.fill_(-1)
             self.stage_seconds["assimilate"] = time.monotonic() - t0
             return
+        scores: dict[str, dict[str, float]] = {s: {} for s in FORECAST_SOURCES}
+        with torch.no_grad():  # constants, each computed once (a replayed one is a whole replay)
+            starts = {(s, b): m.restart_state(b, source=s) for b in begins for s in FORECAST_SOURCES}
+        for (source, b), restart in starts.items():
+            scores[source][str(b)] = self._forecast_score(b, restart, None, list(range(b + 1, n)), scored)
+        source, begin = min(starts, key=lambda sb: scores[sb[0]][str(sb[1])])
         m.forecast_start.fill_(begin)
-        with torch.no_grad():  # constants; the replayed one is a whole replay, so each is computed once
-            starts = {s: m.restart_state(begin, source=s) for s in FORECAST_SOURCES}
-        scores = {s: self._forecast_score(begin, starts[s], None, window) for s in FORECAST_SOURCES}
-        source = min(scores, key=scores.get)
         m.forecast_source.fill_(FORECAST_SOURCES.index(source))
-        choice = {"frame": begin, "scores": scores, "source": source, "correction": None}
+        choice = {"frame": begin, "source": source, "scored": scored, "scores": scores, "correction": None}
+        window = list(range(begin + 1, n))
         held = _held_out(begin, n)
         if iters > 0 and held > 0:
             row = FORECAST_SOURCES.index(source)
@@ -438,7 +444,7 @@ class Trainer:
             opt = torch.optim.Adam([m.forecast_twists], lr=pc.lr_assimilate)
             if opt_state is not None:
                 opt.load_state_dict(opt_state)
-            restart = starts[source]  # the same start every iteration
+            restart = starts[(source, begin)]  # the same start every iteration
             for it in range(start, iters):
                 out = m.simulate(fit_frames, start=begin, twists=m.forecast_twists, restart=restart)
                 picks = self._sample(fit_frames[-1] + 1, pc.views_per_iter, lowest=begin + 1)
@@ -474,13 +480,16 @@ class Trainer:
         self.forecast_choice = choice
         self.stage_seconds["assimilate"] = time.monotonic() - t0
 
-    def _forecast_score(self, begin: int, restart: dict, twists, frames: list[int]) -> float:
-        """The mean image loss (L1 + D-SSIM) over every training view of ``frames`` of the simulation from frame
-        ``begin`` from the state ``restart`` (:meth:`CausalGS.restart_state`) with the velocity correction ``twists``
-        (None: uncorrected); no gradient."""
+    def _forecast_score(self, begin: int, restart: dict, twists, frames: list[int],
+                        scored: list[int] | None = None) -> float:  # fmt: skip
+        """The mean image loss (L1 + D-SSIM) over every training view of ``scored`` (default: all of ``frames``)
+        of the simulation from frame ``begin`` through ``frames`` from the state ``restart``
+        (:meth:`CausalGS.restart_state`) with the velocity correction ``twists`` (None: uncorrected); no gradient."""
+        scored = frames if scored is None else scored
         with torch.no_grad():
             out = self.model.simulate(frames, start=begin, twists=twists, restart=restart)
-            return self._simulated_score(out, frames)
+            rows = [frames.index(k) for k in scored]
+            return self._simulated_score({"x": out["x"][rows], "F": out["F"][rows]}, scored)
 
     def _simulated_score(self, out: dict, frames: list[int]) -> float:
         """The mean image loss (L1 + D-SSIM) over every training view of ``frames`` of simulated particle states
@@ -490,6 +499,18 @@ class Trainer:
         losses = [image_loss(m.render(st, f.camera, self.bg)[0], self._gt(f), self.config.kinematic.lambda_dssim)
                   for st, k in zip(states, frames, strict=True) for f in self.train[k]]  # fmt: skip
         return float(torch.stack(losses).mean())
+
+
+def _forecast_starts(n: int, earliest: int, every: int) -> tuple[list[int], list[int]]:
+    """The assimilation's candidate start frames (``earliest`` frames before the last of ``n`` observed frames,
+    then every ``every`` frames later, the latest ``every`` before the end; all ≥ 1, as a restart is after t = 0)
+    and the newest frames that score them all. None when ``earliest`` ≤ 0 (off) or the window is too short."""
+    last = n - 1
+    every = min(every, last - 1)
+    if earliest <= 0 or every < 1:
+        return [], []
+    begins = sorted({max(1, last - a) for a in range(max(earliest, every), every - 1, -every)})
+    return begins, list(range(last - every + 1, n))
 
 
 def _held_out(begin: int, n: int) -> int:

@@ -22,7 +22,7 @@ TINY = {
                   "max_gaussians": 3000, "sh_degree": 0, "log_every": 20},
     "kinematic": {"iterations": 30, "window_start": 3},
     "physics": {"iterations": 3, "res": 24, "budget": 300, "window_start": 4, "lr_mat": 0.05, "assimilate": 4,
-                "assimilate_iterations": 3, "calibrate": [0.5, 2.0], "calibrate_frames": 4},
+                "assimilate_scored": 2, "assimilate_iterations": 3, "calibrate": [0.5, 2.0], "calibrate_frames": 4},
 }  # fmt: skip
 
 
@@ -339,21 +339,27 @@ def test_forecast_starts_from_the_last_observed_state(fitted):
 
 
 def test_assimilation_chooses_the_forecast_start_by_its_forecast(fitted):
-    """The assimilation stage starts the forecast physics.assimilate frames before the end of the window, from the
-    tracked or the replayed state, whichever forecasts the window's remaining frames better; a velocity correction
-    is fitted to the older frames of those and kept only if it forecasts the held-out newest ones better. The
-    forecast is exactly the chosen simulation."""
-    from causalgs.model.fit import _held_out, load_model
+    """The assimilation stage starts the forecast at one of several frames near the end of the window
+    (physics.assimilate frames before it, then every assimilate_scored frames later), from the tracked or the
+    replayed state, whichever forecasts the window's newest assimilate_scored frames best; a velocity correction
+    is fitted to the older frames after the start and kept only if it forecasts the held-out newest ones better.
+    The forecast is exactly the chosen simulation."""
+    from causalgs.model.fit import _forecast_starts, _held_out, load_model
     from causalgs.model.scene import FORECAST_SOURCES
 
     m, _, tl = load_model(fitted)
     n = tl.train_frames
-    begin = max(1, n - 1 - m.config.physics.assimilate)
-    assert int(m.forecast_start) == begin
+    pc = m.config.physics
+    begins, scored = _forecast_starts(n, pc.assimilate, pc.assimilate_scored)
+    assert len(begins) >= 2 and scored == list(range(n - pc.assimilate_scored, n)) and max(begins) < scored[0]
     choice = json.loads((fitted / "run.json").read_text())["forecast_start"]
-    assert choice["frame"] == begin and set(choice["scores"]) == set(FORECAST_SOURCES)
-    assert all(np.isfinite(v) and v > 0 for v in choice["scores"].values())
-    assert choice["source"] == min(choice["scores"], key=choice["scores"].get)
+    assert choice["scored"] == scored and set(choice["scores"]) == set(FORECAST_SOURCES)
+    flat = {(s, int(b)): v for s, row in choice["scores"].items() for b, v in row.items()}
+    assert set(flat) == {(s, b) for s in FORECAST_SOURCES for b in begins}
+    assert all(np.isfinite(v) and v > 0 for v in flat.values())
+    assert (choice["source"], choice["frame"]) == min(flat, key=flat.get)
+    begin = choice["frame"]
+    assert int(m.forecast_start) == begin
     source = choice["source"]
     row = FORECAST_SOURCES.index(source)
     assert FORECAST_SOURCES[int(m.forecast_source)] == source
