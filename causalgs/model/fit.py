@@ -515,7 +515,7 @@ def _forecast_starts(n: int, earliest: int, every: int) -> tuple[list[int], list
 
 def _held_out(begin: int, n: int) -> int:
     """The newest frames of the window (a third of those after ``begin``, at least one) that the forecast-start
-    corrections are not fitted to and that score the starts; the correction keeps at least one frame of its own."""
+    correction is not fitted to and that decide whether it is kept; it keeps at least one frame of its own."""
     after = n - 1 - begin
     return max(1, min(after - 1, round(after / 3))) if after >= 2 else 0
 
