@@ -58,8 +58,11 @@ def _starts(text: str) -> tuple[float, ...]:
 @click.option("--iterations", type=click.IntRange(1, 500), default=25, show_default=True,
               help="Most Levenberg–Marquardt iterations per calibration (it stops when converged).")
 @precision_option
+@click.option("--resume", is_flag=True,
+              help="Continue the discovery run in --out (stopped, or to redo its outputs) from the calibrations it "
+                   "finished (progress.json); the options must be the same.")  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print report.json to stdout.")
-def discover(source, out, spec, learn, candidates, max_effects, res, starts, iterations, precision, as_json):
+def discover(source, out, spec, learn, candidates, max_effects, res, starts, iterations, precision, resume, as_json):
     """Find where simulation and measurement disagree, name the missing physical effect, add it, show the gap shrink.
 
     SOURCE is a fitted run folder (`causalgs fit`: the measurement is the tracked motion of its particles over the
@@ -79,7 +82,8 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     Writes --out/report.json, report.md, error.png (error per frame before and after), residuals.png (held-out
     residual heat on the particles), paths.png and discover.json (the options); for a run also images.png (held-out
     cameras at held-out frames, rendered before and after) and, when an effect is found, config.toml (the run's
-    config with it added: `causalgs fit DATA --config DIR/config.toml` refits the scene).
+    config with it added: `causalgs fit DATA --config DIR/config.toml` refits the scene). Every calibration is
+    saved as it finishes (progress.json): a stopped run goes on with --resume, redoing none of them.
     """
     from causalgs import _ti
     from causalgs.discover.candidates import select
@@ -92,7 +96,7 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     cfg = DiscoverConfig(res=res or 0, starts=_starts(starts), iterations=iterations, max_effects=max_effects)
     _ti.init("cpu", precision, quiet=True)
     report = run_discovery(source, out, spec=spec, learn=_names(learn, "--learn"), candidates=cands,
-                           config=cfg, log=None if as_json else _console_log())  # fmt: skip
+                           config=cfg, log=None if as_json else _console_log(), resume=resume)  # fmt: skip
     if as_json:
         from causalgs.discover.report import finite
 

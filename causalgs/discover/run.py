@@ -3,7 +3,8 @@
 The measurement is an observation file (:meth:`~causalgs.discover.observation.Observation.save`: trajectories of
 material points, for example from a simulated scene or a tracker). The model's effects and the effect parameters
 calibrated with the base are given as a spec (the physics a fitted run was trained with, or what the user believes).
-Everything a person needs to redo the run is saved next to the report as ``discover.json``.
+Everything a person needs to redo the run is saved next to the report as ``discover.json``, and every calibration
+as it finishes in ``progress.json`` (:mod:`causalgs.discover.journal`): a stopped run is resumed with ``resume``.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+from causalgs.discover.journal import Journal, fingerprint
 from causalgs.discover.observation import Observation, load_observation
 from causalgs.discover.report import write_outputs
 from causalgs.discover.search import DiscoverConfig, discover
@@ -38,10 +40,13 @@ def load_source(source) -> tuple[Observation, dict]:
 
 
 def run_discovery(source, out, *, spec: str | None = None, learn=None, candidates=None,
-                  config: DiscoverConfig | None = None, log=None, obs: Observation | None = None) -> dict:  # fmt: skip
+                  config: DiscoverConfig | None = None, log=None, obs: Observation | None = None,
+                  resume: bool = False) -> dict:  # fmt: skip
     """Discover on ``source`` (or the given ``obs``) with the base model ``spec``/``learn`` (None: the run's own
     physics for a run folder, else :data:`DEFAULT_SPEC` / :data:`DEFAULT_LEARN`); writes ``report.json``,
-    ``report.md``, the plots and ``discover.json`` (the options) into ``out`` and returns the report."""
+    ``report.md``, the plots, ``discover.json`` (the options) and ``progress.json`` (the finished calibrations)
+    into ``out`` and returns the report. An ``out`` that already holds a discovery run is an error unless
+    ``resume``, which continues it (same options and measurement) from its finished calibrations."""
     cfg = config or DiscoverConfig()
     if spec is not None:
         Effects.from_spec(spec)  # a malformed spec is a one-line error before any work
@@ -53,12 +58,16 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
     if cfg.res <= 0:  # the run's grid, else the default
         cfg = dataclasses.replace(cfg, res=int(base.get("res", DiscoverConfig.res)))
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     options = {"source": str(source), "spec": spec, "learn": list(learn),
                "candidates": None if candidates is None else list(candidates),
                "config": dataclasses.asdict(cfg)}  # fmt: skip
+    if (out / "report.json").is_file() and not (out / "progress.json").is_file() and not resume:
+        raise CausalGSError(f"{out} already holds a discovery report: choose another --out")
+    journal = Journal(out / "progress.json", fingerprint({k: v for k, v in options.items() if k != "source"}, obs.x),
+                      resume=resume)  # fmt: skip
+    out.mkdir(parents=True, exist_ok=True)
     write_json(out / "discover.json", options)
-    report, traj = discover(obs, spec, learn, candidates=candidates, config=cfg, log=log)
+    report, traj = discover(obs, spec, learn, candidates=candidates, config=cfg, log=log, journal=journal)
     report["source"] = str(source)
     report["config"] = options
     if obs.truth is not None:

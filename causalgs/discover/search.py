@@ -26,9 +26,10 @@ import numpy as np
 import torch
 
 from causalgs.discover import residuals as R
-from causalgs.discover.calibrate import UNIT, Fit, calibrate, fit_frames, positions
+from causalgs.discover.calibrate import UNIT, Fit, fit_frames, positions
 from causalgs.discover.candidates import Candidate, select
 from causalgs.discover.gate import GateConfig, block_bootstrap, effective_n, judge
+from causalgs.discover.journal import Journal
 from causalgs.discover.model import PhysicsModel
 from causalgs.discover.observation import Observation, noise_floor
 from causalgs.discover.screen import screen, sensitivities
@@ -135,7 +136,9 @@ def _disagreement(state: State, obs: Observation, floor: float) -> dict:
     return out
 
 
-def _refit(base: State, s, cfg: DiscoverConfig) -> State:
+def _refit(base: State, s, cfg: DiscoverConfig, journal: Journal, where: str) -> State:
+    """The candidate of the screen entry ``s`` fitted jointly with the base from two starts (see
+    :func:`fresh_start`); ``where``: the round's name in the journal."""
     c: Candidate = s.candidate
     model = s.model
     th = s.theta.clone()
@@ -147,9 +150,9 @@ def _refit(base: State, s, cfg: DiscoverConfig) -> State:
             if p.startswith("force."):
                 start = s.step.get(p, 0.0)
         th[i] = model.knobs[i].internal(float(start))
-    fits = [calibrate(model, th, iterations=cfg.iterations, warm=cfg.warm)]
-    fits.append(calibrate(model, fresh_start(model, th, c.params, cfg.starts), iterations=cfg.iterations,
-                          warm=cfg.warm))  # fmt: skip
+    fits = [journal.calibrate(f"{where}/{c.key}/start 1", model, th, iterations=cfg.iterations, warm=cfg.warm),
+            journal.calibrate(f"{where}/{c.key}/start 2", model, fresh_start(model, th, c.params, cfg.starts),
+                              iterations=cfg.iterations, warm=cfg.warm)]  # fmt: skip
     best = min(fits, key=lambda f: f.loss)
     st = _state(model, best)
     st.starts = fits
@@ -394,13 +397,18 @@ def _law(c: Candidate, unc: dict) -> str:
 
 
 def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: DiscoverConfig | None = None,
-             log=None, start: dict | None = None) -> tuple[dict, dict]:  # fmt: skip
+             log=None, start: dict | None = None, journal: Journal | None = None) -> tuple[dict, dict]:  # fmt: skip
     """Run the loop of the module docstring on ``obs`` with the base effects ``spec`` (and the effect parameters
     ``learn`` fitted with it). Returns (report, trajectories): the report is JSON-ready; trajectories holds the
     base and final rollouts for the plots. ``start``: physical values of initial-velocity or effect knobs (by name)
-    that replace the base calibration's data-derived start (the nuisance tests start 10% off the true velocity)."""
+    that replace the base calibration's data-derived start (the nuisance tests start 10% off the true velocity).
+    ``journal``: where finished calibrations are kept and found again (:mod:`causalgs.discover.journal`; default:
+    in memory)."""
     cfg = config or DiscoverConfig()
     log = log or (lambda msg: None)
+    journal = journal if journal is not None else Journal(None, "")
+    if len(journal):
+        log(f"resuming: {len(journal)} finished calibrations in {journal.path}")
     t0 = time.monotonic()
     sigma = obs.noise if obs.noise is not None else noise_floor(obs)
     base_model = PhysicsModel(obs, spec, learn, res=cfg.res)
@@ -413,7 +421,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
             if base_model.knobs[i].kind in ("E", "nu"):
                 raise CausalGSError(f"start: '{name}' is a material; starting stiffnesses are DiscoverConfig.starts")
             th[i] = base_model.knobs[i].internal(float(value))
-        fits.append(calibrate(base_model, th, iterations=cfg.iterations, warm=cfg.warm))
+        fits.append(journal.calibrate(f"base/{E:.3g}", base_model, th, iterations=cfg.iterations, warm=cfg.warm))
     base = _state(base_model, min(fits, key=lambda f: f.loss))
     first = base
     report = {
@@ -452,7 +460,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         for s in finalists:
             log(f"  refitting {s.candidate.key}")
             try:
-                st = _refit(current, s, cfg)
+                st = _refit(current, s, cfg, journal, f"round {round_ + 1}")
             except CausalGSError as e:
                 entry["refits"].append({"effect": s.candidate.key, "error": str(e)})
                 continue
@@ -463,7 +471,8 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
                 if st_i.train > cfg.polish_within * lead:
                     continue
                 log(f"  polishing {c_i.key}")
-                polished = calibrate(st_i.model, st_i.fit.theta, iterations=2 * cfg.iterations)
+                polished = journal.calibrate(f"round {round_ + 1}/{c_i.key}/polish", st_i.model, st_i.fit.theta,
+                                             iterations=2 * cfg.iterations)
                 if polished.loss < st_i.fit.loss:
                     refits[i] = (c_i, _state(st_i.model, polished))
                     refits[i][1].starts = st_i.starts
@@ -507,7 +516,8 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         # Polish the accepted refit (again, if it was polished above): a missing effect and the throw trade off
         # along a long valley (a lower upward throw against an upward push over a short flight); the value and its
         # interval are quoted from the converged fit.
-        polished = calibrate(st.model, st.fit.theta, iterations=2 * cfg.iterations)
+        polished = journal.calibrate(f"round {round_ + 1}/{c.key}/polish accepted", st.model, st.fit.theta,
+                                     iterations=2 * cfg.iterations)
         if polished.loss < st.fit.loss:
             st, st.starts = _state(st.model, polished), st.starts
         # The reported interval adds the rest shape's error to the bootstrap's (the gate's significance above is
@@ -560,5 +570,6 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
                              "future_rms_m": math.sqrt(current.future) * UNIT}  # fmt: skip
     report["final_spec"] = current.model.spec_at(current.fit.theta)
     report["seconds"] = time.monotonic() - t0
+    report["calibrations_resumed"] = journal.reused
     traj = {"before": first.sim, "after": current.sim}
     return report, traj

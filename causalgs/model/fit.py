@@ -218,7 +218,7 @@ class Trainer:
         else:
             self.gaussians = Gaussians.from_points(np.zeros((1, 3)), sh_degree=self.config.canonical.sh_degree)
             self.model = self._new_model()
-            self.model.load_state_dict(resume["model"])
+            _restore(self.model, resume["model"], self.run.checkpoint_path)
             self.gaussians = self.model.gaussians
         if self.model is None:
             self.model = self._new_model()
@@ -555,7 +555,7 @@ def fit(data_dir, out, config: FitConfig | None = None, *, resume: bool = False,
     write_json(run.info_path, {"data": str(Path(data_dir).resolve()), "status": "running",
                                "fps": trainer.timeline.fps, "train_frames": trainer.timeline.train_frames})  # fmt: skip
     if state is not None and state["stage"] == "done":
-        model = _load_model(trainer, state)
+        model = _load_model(trainer, state, run.checkpoint_path)
         trainer.forecast_choice = state.get("forecast_choice")
         trainer.calibration = state.get("calibration")
     else:
@@ -574,10 +574,22 @@ def fit(data_dir, out, config: FitConfig | None = None, *, resume: bool = False,
     return model
 
 
-def _load_model(trainer: Trainer, state: dict) -> CausalGS:
+def _restore(model: CausalGS, weights: dict, path: Path) -> None:
+    """Load a checkpoint's model weights; a checkpoint of another model (another version, another config's sizes)
+    is a one-line error naming the file and what differs."""
+    try:
+        model.load_state_dict(weights)
+    except RuntimeError as e:
+        lines = [ln.strip() for ln in str(e).splitlines()[1:] if ln.strip()]
+        what = lines[0] if lines else "its weights do not fit"
+        raise CausalGSError(f"{path}: a checkpoint of another model than this config and version make ({what})") \
+            from None
+
+
+def _load_model(trainer: Trainer, state: dict, path: Path) -> CausalGS:
     trainer.gaussians = Gaussians.from_points(np.zeros((1, 3)), sh_degree=trainer.config.canonical.sh_degree)
     trainer.model = trainer._new_model()
-    trainer.model.load_state_dict(state["model"])
+    _restore(trainer.model, state["model"], path)
     trainer.stage_seconds = dict(state.get("stage_seconds", {}))
     return trainer.model
 
@@ -592,6 +604,6 @@ def load_model(run_dir, which: str = "checkpoint.pt") -> tuple[CausalGS, Dataset
     if state.get("model") is None:
         raise CausalGSError(f"{run.out / which}: the fit has not reached the dynamic stages yet")
     trainer = Trainer(data, run, config)
-    model = _load_model(trainer, state)
+    model = _load_model(trainer, state, run.out / which)
     model.eval()
     return model, data, trainer.timeline

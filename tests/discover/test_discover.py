@@ -106,6 +106,19 @@ def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_
     assert (out / "report.md").is_file() and (out / "error.png").stat().st_size > 1000
     saved = json.loads((out / "discover.json").read_text())
     assert saved["spec"] == "gravity;walls" and saved["candidates"] == ["linear_drag"]
+    # Every calibration was kept as it finished; a second run into the same folder must say --resume, and resumed
+    # it recomputes none of them and reaches the same report.
+    done = json.loads((out / "progress.json").read_text())["entries"]
+    assert "base/3e+04" in done and "round 1/linear_drag/start 1" in done and rep["calibrations_resumed"] == 0
+    r = CliRunner().invoke(cli, args[:-1])
+    assert r.exit_code == 1 and "already holds a discovery run: use --resume" in r.output, r.output
+    r = CliRunner().invoke(cli, [*args, "--resume"])
+    assert r.exit_code == 0, r.output
+    again = json.loads(r.output)
+    assert again["calibrations_resumed"] == len(done)
+    assert again["discovered"][0]["params"] == rep["discovered"][0]["params"]
+    r = CliRunner().invoke(cli, [*args[:-3], "--max-effects", "2", "--resume"])  # other options: not mixed in
+    assert r.exit_code == 1 and "made with other options" in r.output, r.output
     bad = [
         (["discover", str(tmp_path / "missing.npz"), "--out", str(out)], "no such observation file"),
         (["discover", str(tmp_path), "--out", str(out)], "not a fitted run"),

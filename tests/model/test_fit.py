@@ -202,6 +202,23 @@ def test_bad_inputs_are_one_line_errors(tmp_path, scene):
     assert code == 1 and "config.toml" in out and len(out.splitlines()) == 1
 
 
+def test_a_checkpoint_of_another_model_is_a_one_line_error(fitted, tmp_path):
+    import shutil
+
+    from cli.main import cli
+
+    run = tmp_path / "run"
+    shutil.copytree(fitted, run)
+    state = torch.load(run / "checkpoint.pt", weights_only=False)
+    state["model"]["foreign_buffer"] = torch.zeros(3)  # saved by another version of the model
+    torch.save(state, run / "checkpoint.pt")
+    for args in (["predict", str(run), "--frames", "2"], ["fit", "unused", "--out", str(run), "--resume"]):
+        r = CliRunner().invoke(cli, args)
+        out = r.output.strip()
+        assert r.exit_code == 1 and len(out.splitlines()) == 1, out
+        assert "checkpoint.pt: a checkpoint of another model" in out and "foreign_buffer" in out
+
+
 def test_cluster_segments_by_learned_physics(fitted):
     from cli.main import cli
 

@@ -1,0 +1,84 @@
+"""What a discovery run has finished so far, kept on disk so that a stopped run loses none of it.
+
+Nearly all of a discovery run's time goes into calibrations (each a few hundred rollouts of the MPM; at the video
+level a refit of one candidate takes a quarter of an hour on two cores). The loop is deterministic given its
+inputs, so every calibration is named by where it happens (``"base/1e+05"``, ``"round 1/drag/start 2"``,
+``"round 1/drag/polish"``) and its result — θ, loss, evaluations — is written to ``progress.json`` as soon as it
+ends (atomically). A run resumed on the same inputs (the same options and the same measurement, checked by a
+fingerprint) takes every finished calibration from the file and only computes what is left; a file of other inputs
+is a one-line error rather than a silently mixed result.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from causalgs.discover.calibrate import Fit, calibrate
+from causalgs.errors import CausalGSError
+from causalgs.io import read_json, write_json
+
+VERSION = 1
+
+
+def fingerprint(options: dict, x: np.ndarray) -> str:
+    """A digest of the run's options and its measurement (positions at full precision)."""
+    h = hashlib.sha256(json.dumps(options, sort_keys=True).encode())
+    h.update(np.ascontiguousarray(x, dtype=np.float64).tobytes())
+    return h.hexdigest()[:16]
+
+
+class Journal:
+    """Finished calibrations by name (see the module docstring). ``path`` None: nothing is kept (a run in memory)."""
+
+    def __init__(self, path: str | Path | None, key: str, *, resume: bool = False):
+        self.path = None if path is None else Path(path)
+        self.key = key
+        self.entries: dict[str, dict] = {}
+        self.reused = 0
+        if self.path is None:
+            return
+        if self.path.exists():
+            if not resume:
+                raise CausalGSError(f"{self.path.parent} already holds a discovery run: use --resume to continue it "
+                                    "or choose another --out")  # fmt: skip
+            saved = read_json(self.path, "discovery progress")
+            if not isinstance(saved, dict) or saved.get("version") != VERSION or "entries" not in saved:
+                raise CausalGSError(f"{self.path}: not a progress file of this version of causalgs discover")
+            if saved.get("fingerprint") != key:
+                raise CausalGSError(f"{self.path}: made with other options or another measurement; choose another "
+                                    "--out to start afresh")  # fmt: skip
+            self.entries = dict(saved["entries"])
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def calibrate(self, name: str, model, theta: torch.Tensor, **options) -> Fit:
+        """The calibration ``name`` (:func:`~causalgs.discover.calibrate.calibrate` of ``model`` from ``theta`` with
+        ``options``): from the file when finished before, else computed and recorded at once."""
+        e = self.entries.get(name)
+        if e is not None:
+            self.reused += 1
+            return Fit(torch.tensor(e["theta"], dtype=torch.float64), float(e["loss"]), int(e["evaluations"]),
+                       float(e["start"]))  # fmt: skip
+        t0 = time.monotonic()
+        f = calibrate(model, theta, **options)
+        self.entries[name] = {"theta": [float(v) for v in f.theta.detach().double()], "loss": _finite(f.loss),
+                              "evaluations": int(f.evaluations), "start": float(f.start),
+                              "seconds": round(time.monotonic() - t0, 2)}  # fmt: skip
+        self._write()
+        return f
+
+    def _write(self) -> None:
+        if self.path is not None:
+            write_json(self.path, {"version": VERSION, "fingerprint": self.key, "entries": self.entries})
+
+
+def _finite(v: float) -> float:
+    """JSON has no infinity: an infinite loss (a blown-up fit) is kept as a very large one."""
+    return float(v) if np.isfinite(v) else 1e300
