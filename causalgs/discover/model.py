@@ -7,6 +7,12 @@ Parameters (one flat float64 vector θ, so that least squares, sensitivities and
 - the *learned* effect parameters, by name (``"ground.mu"``, ``"linear_drag.c"``, ``"force.b[2]"``): each in
   internal units, value = lower + scale·softplus(a) for a parameter with a lower bound (drag, friction, viscosity
   never go negative) and value = offset + scale·a otherwise. Every other effect parameter keeps its spec value.
+  A parameter whose growth shortens the simulator's stable substep (viscosity: explicit diffusion needs
+  dt ≤ dx²ρ/(6η)) is bounded above too, value = lower + (upper − lower)·sigmoid(a), at the value whose substep is
+  :data:`SUBSTEP_COST` times shorter than the elastic one of the stiffest material the model allows (about 650 Pa·s
+  on a 5 cm grid, where a 10 cm block of 30 kPa relaxes within half a frame at 24 fps). Unbounded, a calibration
+  chasing a wobble it cannot explain drove the viscosity to thousands of Pa·s, where every rollout took tens of
+  times longer (5000 Pa·s on that grid: about 1200 substeps a frame) and one refit ran for over half an hour.
 
 The rollout is :func:`causalgs.sim.autograd.simulate` on the model's own grid (``res`` cells across the box): one
 forward and one checkpointed backward give the loss and its gradient in every entry of θ. Density is fixed (video
@@ -30,6 +36,7 @@ from causalgs.sim.autograd import simulate
 from causalgs.sim.effects import REGISTRY, Effects
 
 CAPACITY, SEGMENT = 8192, 16  # the fitted model's store (causalgs.model.config.PhysicsConfig): one set of kernels
+SUBSTEP_COST = 2.0  # a learned effect parameter may shorten the substep this many times below the elastic one
 
 
 @dataclass(frozen=True)
@@ -43,13 +50,19 @@ class Knob:
     scale: float = 1.0
     lower: float | None = None
     offset: float = 0.0
+    upper: float | None = None  # with ``lower``: a bounded parameter (sigmoid)
 
     def value(self, a: torch.Tensor) -> torch.Tensor:
+        if self.kind == "effect" and self.lower is not None and self.upper is not None:
+            return self.lower + (self.upper - self.lower) * torch.sigmoid(torch.as_tensor(a))
         if self.kind == "effect" and self.lower is not None:
             return self.lower + self.scale * torch.nn.functional.softplus(a)
         return self.offset + self.scale * a
 
     def internal(self, v: float) -> float:
+        if self.kind == "effect" and self.lower is not None and self.upper is not None:
+            s = min(max((v - self.lower) / (self.upper - self.lower), 1e-6), 1 - 1e-6)
+            return math.log(s / (1 - s))
         if self.kind == "effect" and self.lower is not None:
             y = max((v - self.lower) / self.scale, 1e-9)
             return y + math.log(-math.expm1(-y)) if y < 30 else y  # softplus⁻¹
@@ -107,12 +120,39 @@ class PhysicsModel:
             effect, param = n.split("[")[0].split(".")
             prm = REGISTRY[effect].param(param)
             scale = SCALES.get(param, 1.0)
+            upper = self._substep_cap(effect, param)
             if prm.lower is not None:
-                knobs.append(Knob(n, "effect", index=i, scale=scale, lower=prm.lower))
+                knobs.append(Knob(n, "effect", index=i, scale=scale, lower=prm.lower, upper=upper))
             else:
                 knobs.append(Knob(n, "effect", index=i, scale=scale, offset=float(flat[i])))
         self.knobs = knobs
         self.names = [k.name for k in knobs]
+
+    def _substep_cap(self, effect: str, param: str) -> float | None:
+        """The largest value of ``effect.param`` whose stable substep is no shorter than the elastic substep of the
+        stiffest allowed material over :data:`SUBSTEP_COST` (None: the effect does not limit the substep)."""
+        definition = REGISTRY[effect]
+        if definition.dt_limit is None:
+            return None
+        E, nu, rho = self.E_range[1], self.nu_range[1], float(self.obs.density)
+        c = math.sqrt(E * (1 - nu) / ((1 + nu) * (1 - 2 * nu)) / rho)  # the fastest pressure wave
+        dx = self.sim.geo.dx
+        target = dx / c / SUBSTEP_COST
+        values = {k: np.array(v, dtype=np.float64) for k, v in self.effects.values(effect).items()}
+
+        def dt(v: float) -> float:
+            values[param] = np.array([v])
+            return definition.dt_limit(values, dx, rho)
+
+        lo, hi = 1e-6, 1.0
+        while dt(hi) >= target:  # bracket, then bisect in log space (dt_limit falls as the parameter grows)
+            lo, hi = hi, hi * 10.0
+            if hi > 1e12:
+                return None
+        for _ in range(60):
+            mid = math.sqrt(lo * hi)
+            lo, hi = (mid, hi) if dt(mid) >= target else (lo, mid)
+        return lo
 
     # -- θ ----------------------------------------------------------------------------------------------------------
     def index(self, name: str) -> int:

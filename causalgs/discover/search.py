@@ -149,6 +149,8 @@ def _refit(base: State, s, cfg: DiscoverConfig, journal: Journal, where: str) ->
             start = start if start > 0.1 * abs(probe) else 0.5 * abs(probe)
             if p.startswith("force."):
                 start = s.step.get(p, 0.0)
+        if model.knobs[i].upper is not None:  # a bounded parameter starts inside, where its sigmoid has slope
+            start = min(start, 0.5 * model.knobs[i].upper)
         th[i] = model.knobs[i].internal(float(start))
     fits = [journal.calibrate(f"{where}/{c.key}/start 1", model, th, iterations=cfg.iterations, warm=cfg.warm),
             journal.calibrate(f"{where}/{c.key}/start 2", model, fresh_start(model, th, c.params, cfg.starts),

@@ -85,6 +85,24 @@ def test_initial_twist_from_the_first_frames_is_exact_for_free_fall():
     assert math.isclose(vals["cube.E"], 3e4, rel_tol=1e-6) and math.isclose(vals["cube.nu"], 0.25, rel_tol=1e-6)
 
 
+def test_a_viscosity_is_bounded_where_its_substep_would_outrun_the_elastic_one():
+    """A learned viscosity stops where explicit diffusion's substep, dx²ρ/(6η), is SUBSTEP_COST times the elastic
+    substep dx/c of the stiffest allowed material; values round-trip inside the bound, and no θ goes past it."""
+    from causalgs import _ti
+    from causalgs.discover.model import SUBSTEP_COST, PhysicsModel
+
+    _ti.init("cpu", "float32")
+    m = PhysicsModel(_flight(), "gravity;damping:eta=30;walls", ("damping.eta", "gravity.g"), res=16)
+    k = m.knobs[m.index("damping.eta")]
+    E, nu, rho, dx = m.E_range[1], m.nu_range[1], m.obs.density, m.sim.geo.dx
+    c = math.sqrt(E * (1 - nu) / ((1 + nu) * (1 - 2 * nu)) / rho)
+    assert math.isclose(k.upper, SUBSTEP_COST * dx * rho * c / 6.0, rel_tol=1e-6)  # the bound the law gives
+    for v in (0.5, 30.0, 200.0, 0.9 * k.upper):
+        assert math.isclose(float(k.value(torch.tensor(k.internal(v), dtype=torch.float64))), v, rel_tol=1e-6)
+    assert float(k.value(torch.tensor(40.0, dtype=torch.float64))) <= k.upper
+    assert m.knobs[m.index("gravity.g[2]")].upper is None  # gravity does not shorten the substep
+
+
 def test_calibration_recovers_a_throw_and_reaches_the_noise_floor():
     """Free fall simulated by the MPM agrees with the closed-form law, and the calibration recovers the throw from a
     wrong start (Levenberg–Marquardt and L-BFGS). Only the throw is fitted: a free flight does not see the
