@@ -190,10 +190,13 @@ def markdown(report: dict) -> str:
               f"{im['psnr_after']:.2f} dB after (`images.png`: {im['panel']}).", ""]  # fmt: skip
     dis = report["disagreement"]
     dep = dis.get("first_departure")
+    tr = report.get("tracking")
     L.append("## Where and when the base model departs")
     if dep:
         L.append(f"- first departure: frame {dep['frame']} (t = {dep['time']:.3f} s), body **{dep['body']}**, "
-                 f"{dep['contact']}, around ({', '.join(f'{c:.3f}' for c in dep['centroid'])}) m")  # fmt: skip
+                 f"{dep['contact']}, around ({', '.join(f'{c:.3f}' for c in dep['centroid'])}) m"
+                 + (" — a frame where the tracked motion has lost the images (below)"
+                    if tr and dep["frame"] in tr["poor"] else ""))  # fmt: skip
     else:
         L.append("- the error never rises above three times the noise floor")
     bc = dis.get("by_contact", {})
@@ -203,6 +206,20 @@ def markdown(report: dict) -> str:
         L.append("- residual acceleration explained by each driver: "
                  + ", ".join(f"`{k}` {_pct(v)}" for k, v in sorted(sig.items(), key=lambda kv: -kv[1])))  # fmt: skip
     L.append("")
+    if tr:
+        L += ["## The measurement", "",
+              f"The measured motion is the run's tracked motion (its kinematic fit). Rendered at {tr['views']} "
+              f"training cameras it matches the images at a median PSNR of {tr['median']:.1f} dB over the "
+              f"{len(tr['frames'])} observed frames."]  # fmt: skip
+        if tr["poor"]:
+            worst = min(tr["psnr"])
+            L.append(f"It loses them (more than {tr['drop_db']:.0f} dB below the median, down to {worst:.1f} dB) at "
+                     f"frames {_ranges(tr['poor'])}: a disagreement there may be the tracking's, not the "
+                     "physics'; a longer kinematic fit (`--set kinematic.iterations=…`) tracks better.")  # fmt: skip
+        else:
+            L.append("No frame falls more than "
+                     f"{tr['drop_db']:.0f} dB below it: the disagreement above is the physics'.")  # fmt: skip
+        L.append("")
     for i, rnd in enumerate(report["rounds"]):
         L += [f"## Round {i + 1}", "", "| candidate | screen gain | refit held-out MSE (cm²) | passed | why not |",
               "|---|---|---|---|---|"]  # fmt: skip
@@ -231,6 +248,18 @@ def markdown(report: dict) -> str:
     L += ["Plots: `error.png` (error per frame), `residuals.png` (held-out residual heat), `paths.png` (centroids).",
           "", f"Took {report['seconds']:.0f} s."]  # fmt: skip
     return "\n".join(L) + "\n"
+
+
+def _ranges(frames) -> str:
+    """[3, 4, 5, 9] → "3–5, 9"."""
+    out, start = [], None
+    for i, f in enumerate(frames):
+        if start is None:
+            start = f
+        if i + 1 == len(frames) or frames[i + 1] != f + 1:
+            out.append(str(start) if start == f else f"{start}–{f}")
+            start = None
+    return ", ".join(out)
 
 
 def _pct(v) -> str:

@@ -67,7 +67,16 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
                       resume=resume)  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "discover.json", options)
+    tracking = None
+    if "run" in base:  # how well the measurement (the run's tracked motion) matches its own images, per frame
+        from causalgs.discover.video import tracking_quality
+
+        if log:
+            log("scoring the tracked motion against the training images")
+        tracking = tracking_quality(base["run"])
     report, traj = discover(obs, spec, learn, candidates=candidates, config=cfg, log=log, journal=journal)
+    if tracking is not None:
+        report["tracking"] = tracking
     report["source"] = str(source)
     report["config"] = options
     if obs.truth is not None:

@@ -121,6 +121,42 @@ def image_residuals(run_dir, obs: Observation, traj: dict, out_png, *, views: in
             "panel": "image | before | after | |before − image|×4 | |after − image|×4"}  # fmt: skip
 
 
+TRACKING_DROP_DB = 3.0  # a frame this far below the median PSNR of the tracked motion has lost the images
+
+
+def tracking_quality(run_dir, *, views: int = 4, drop_db: float = TRACKING_DROP_DB) -> dict:
+    """How well the measurement itself agrees with the video: the PSNR at every observed frame of the run's tracked
+    motion (its kinematic fit, which :func:`observation_from_run` takes as the measured motion) rendered at up to
+    ``views`` training cameras. Frames more than ``drop_db`` below the median are where the tracking has lost the
+    images (an impact it smoothed over, say): a disagreement there may be the measurement's, not the physics'.
+    Returns ``{"frames", "psnr", "median", "poor", "views"}``."""
+    from causalgs.metrics.pixel import psnr
+    from causalgs.model.fit import load_model
+
+    model, data, tl = load_model(run_dir, "checkpoint.pt")
+    bg = tuple(float(b) for b in data.background)
+    cams = sorted({f.view for f in data.train if f.view is not None})
+    cams = set(cams[:: max(1, len(cams) // views)][:views]) if cams else None
+    by_frame: dict[int, list] = {}
+    for fr in data.train:
+        if cams is None or fr.view in cams:
+            by_frame.setdefault(tl.index(fr), []).append(fr)
+    frames = sorted(k for k in by_frame if k < tl.train_frames)
+    scores = []
+    for k in frames:
+        state = model.kinematic_state(k)
+        vals = []
+        for fr in by_frame[k][:views]:
+            with torch.no_grad():
+                img, _, _ = model.render(state, fr.camera, bg)
+            vals.append(float(psnr(img.double().clamp(0, 1), torch.from_numpy(fr.image).double())))
+        scores.append(float(np.mean(vals)))
+    med = float(np.median(scores)) if scores else float("nan")
+    poor = [k for k, v in zip(frames, scores, strict=True) if v < med - drop_db]
+    return {"frames": frames, "psnr": scores, "median": med, "poor": poor, "drop_db": drop_db,
+            "views": len(cams) if cams else views}  # fmt: skip
+
+
 def _bodies(h: np.ndarray, min_share: float) -> np.ndarray:
     """Dominant pattern per particle; small patterns merged into the pattern they mix with most."""
     label = h.argmax(1)

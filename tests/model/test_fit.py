@@ -468,6 +468,25 @@ def test_discovery_reads_a_fitted_run(fitted, tmp_path):
     im = rep["images"]  # held-out cameras at held-out frames, rendered before and after
     assert im is not None and im["images"] >= 1 and np.isfinite(im["psnr_before"]) and (out / "images.png").is_file()
     assert min(im["frames"]) >= obs.observed
+    # How well the measurement matches the video: the tracked motion's PSNR at every observed frame, the same as a
+    # render of the kinematic state at that frame scores; frames far below the median are named in the report.
+    from causalgs.discover.report import _ranges
+    from causalgs.discover.video import tracking_quality
+    from causalgs.metrics.pixel import psnr
+    from causalgs.model.fit import load_model as load
+
+    tr = rep["tracking"]
+    assert tr["frames"] == list(range(n)) and all(np.isfinite(tr["psnr"]))
+    model, data, tl2 = load(fitted)
+    first = min(f.view for f in data.train)
+    fr = next(f for f in data.train if tl2.index(f) == n - 1 and f.view == first)
+    with torch.no_grad():
+        img, _, _ = model.render(model.kinematic_state(n - 1), fr.camera, tuple(float(b) for b in data.background))
+    one = float(psnr(img.double().clamp(0, 1), torch.from_numpy(fr.image).double()))
+    assert abs(tracking_quality(fitted, views=1)["psnr"][-1] - one) < 1e-9 * one  # one camera: the first
+    assert tr["poor"] == [k for k, v in zip(tr["frames"], tr["psnr"], strict=True) if v < tr["median"] - 3.0]
+    assert "## The measurement" in (out / "report.md").read_text()
+    assert _ranges([3, 4, 5, 9, 11, 12]) == "3–5, 9, 11–12" and _ranges([]) == ""
     # The repair goes into a config a refit can use: the run's, with the discovered effect learned from its value.
     from causalgs.discover.run import _repaired_config
     from causalgs.model.config import FitConfig
