@@ -211,6 +211,8 @@ def markdown(report: dict) -> str:
               f"The measured motion is the run's tracked motion (its kinematic fit). Rendered at {tr['views']} "
               f"training cameras it matches the images at a median PSNR of {tr['median']:.1f} dB over the "
               f"{len(tr['frames'])} observed frames."]  # fmt: skip
+        if tr.get("stray_particles"):
+            L.append(f"{tr['stray_particles']} stray particle(s), apart from every body, were left out.")
         if tr["poor"]:
             worst = min(tr["psnr"])
             L.append(f"It loses them (more than {tr['drop_db']:.0f} dB below the median, down to {worst:.1f} dB) at "

@@ -3,7 +3,10 @@
 :func:`observation_from_run` turns a run of ``causalgs fit`` into an :class:`Observation`: the simulated particles'
 positions over the observed window by the run's kinematic fit (the tracked motion, fitted to every training image),
 their rest volumes, and bodies from the fit's motion segmentation (each particle's dominant motion pattern; patterns
-holding less than ``min_share`` of the particles join the pattern they mix most with). The last ``held_out``
+holding less than ``min_share`` of the particles join the pattern they mix most with). Stray particles are left out
+(:func:`stray_particles`: a few particles apart from every body, such as a Gaussian that floated below the floor,
+are no material anyone measured, and one of them 18 cm off its body's path outweighed a whole drag). The last
+``held_out``
 fraction of the window is never fitted by discovery and only scored. The base model is the run's own physics: its
 effects spec at the learned values, the effect parameters it learned, its grid.
 """
@@ -43,6 +46,10 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = 6
     h = h.double().numpy()
     body = _bodies(h, min_share)
     vol = p.vol.double().numpy()
+    stray = stray_particles(x[0], float(model.cell))
+    if stray.all():
+        raise CausalGSError(f"{run_dir}: no group of particles large enough to be a body")
+    x, h, body, vol = x[:, ~stray], h[~stray], body[~stray], vol[~stray]
     rng = np.random.default_rng(seed)
     if len(vol) > max_points:  # a volume-preserving subset, the same share of every body
         keep = []
@@ -66,7 +73,8 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = 6
     observed = max(3, n - round(held_out * n))
     obs = Observation(times=np.arange(n) / tl.fps, x=x, vol=vol, body=body, observed=observed, lo=lo, hi=hi,
                       density=rho, ground=ground, names=[f"body {b}" for b in range(int(body.max()) + 1)])  # fmt: skip
-    return obs, {"spec": eff.spec(), "learn": tuple(cfg.learn), "res": int(cfg.res), "run": str(run_dir)}
+    return obs, {"spec": eff.spec(), "learn": tuple(cfg.learn), "res": int(cfg.res), "run": str(run_dir),
+                 "stray": int(stray.sum())}  # fmt: skip
 
 
 def image_residuals(run_dir, obs: Observation, traj: dict, out_png, *, views: int = 4) -> dict | None:
@@ -119,6 +127,24 @@ def image_residuals(run_dir, obs: Observation, traj: dict, out_png, *, views: in
     return {"psnr_before": float(np.mean(scores["before"])), "psnr_after": float(np.mean(scores["after"])),
             "images": len(frames), "frames": sorted({tl.index(f) for f in frames}),
             "panel": "image | before | after | |before − image|×4 | |after − image|×4"}  # fmt: skip
+
+
+STRAY_SHARE = 0.01  # groups of particles holding less than this share of them all are strays
+
+
+def stray_particles(x: np.ndarray, cell: float, share: float = STRAY_SHARE) -> np.ndarray:
+    """[P] bool: particles of the groups (particles within one simulation cell of each other, transitively) that hold
+    fewer than ``share`` of all the particles (and fewer than 8): floaters, not bodies."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(x).query_pairs(cell, output_type="ndarray")
+    n = len(x)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    size = np.bincount(label)
+    return size[label] < max(8, share * n) if n >= 8 else np.zeros(n, dtype=bool)
 
 
 TRACKING_DROP_DB = 3.0  # a frame this far below the median PSNR of the tracked motion has lost the images

@@ -103,6 +103,18 @@ def test_a_viscosity_is_bounded_where_its_substep_would_outrun_the_elastic_one()
     assert m.knobs[m.index("gravity.g[2]")].upper is None  # gravity does not shorten the substep
 
 
+def test_stray_particles_are_the_small_groups_apart_from_every_body():
+    from causalgs.discover.video import stray_particles
+
+    block = _cube(n=8, side=0.16)  # 2 cm apart: one group at a 3 cm cell
+    ball = _cube(n=5, side=0.1, centre=(0.4, 0.0, 0.5))  # a second, smaller body, kept
+    floaters = np.array([[-0.4, 0.0, -0.05], [-0.41, 0.0, -0.05], [0.0, 0.4, 0.9]])  # two together, one alone
+    x = np.concatenate([block, ball, floaters])
+    stray = stray_particles(x, 0.03)
+    assert stray.tolist() == [False] * (len(block) + len(ball)) + [True] * 3
+    assert not stray_particles(x[:5], 0.03).any()  # too few particles to call any of them strays
+
+
 def test_calibration_recovers_a_throw_and_reaches_the_noise_floor():
     """Free fall simulated by the MPM agrees with the closed-form law, and the calibration recovers the throw from a
     wrong start (Levenberg–Marquardt and L-BFGS). Only the throw is fitted: a free flight does not see the
