@@ -8,7 +8,8 @@ holding less than ``min_share`` of the particles join the pattern they mix most 
 are no material anyone measured, and one of them 18 cm off its body's path outweighed a whole drag). The last
 ``held_out``
 fraction of the window is never fitted by discovery and only scored. The base model is the run's own physics: its
-effects spec at the learned values, the effect parameters it learned, its grid.
+effects spec at the learned values and the effect parameters it learned; its grid is used where
+``DiscoverConfig.res`` is 0 (``causalgs discover`` calibrates on ``--res`` cells, 20 by default).
 """
 
 from __future__ import annotations
