@@ -211,6 +211,10 @@ def markdown(report: dict) -> str:
               f"The measured motion is the run's tracked motion (its kinematic fit). Rendered at {tr['views']} "
               f"training cameras it matches the images at a median PSNR of {tr['median']:.1f} dB over the "
               f"{len(tr['frames'])} observed frames."]  # fmt: skip
+        if tr.get("pixel_m"):
+            L.append(f"A pixel spans {_mm(tr['pixel_m'])} at the bodies; the noise credited to the measurement, "
+                     f"{_mm(report['noise'])} per coordinate, is at least a quarter of it (tracking errs smoothly "
+                     "over many frames, which the jitter of the tracks does not show).")  # fmt: skip
         if tr.get("stray_particles"):
             L.append(f"{tr['stray_particles']} stray particle(s), apart from every body, were left out.")
         if tr["poor"]:

@@ -76,7 +76,7 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
         tracking = tracking_quality(base["run"])
     report, traj = discover(obs, spec, learn, candidates=candidates, config=cfg, log=log, journal=journal)
     if tracking is not None:
-        report["tracking"] = {**tracking, "stray_particles": base.get("stray", 0)}
+        report["tracking"] = {**tracking, "stray_particles": base.get("stray", 0), "pixel_m": base.get("pixel_m")}
     report["source"] = str(source)
     report["config"] = options
     if obs.truth is not None:

@@ -6,10 +6,18 @@ their rest volumes, and bodies from the fit's motion segmentation (each particle
 holding less than ``min_share`` of the particles join the pattern they mix most with). Stray particles are left out
 (:func:`stray_particles`: a few particles apart from every body, such as a Gaussian that floated below the floor,
 are no material anyone measured, and one of them 18 cm off its body's path outweighed a whole drag). The last
-``held_out``
-fraction of the window is never fitted by discovery and only scored. The base model is the run's own physics: its
-effects spec at the learned values and the effect parameters it learned; its grid is used where
+``held_out`` fraction of the window is never fitted by discovery and only scored. The base model is the run's own
+physics: its effects spec at the learned values and the effect parameters it learned; its grid is used where
 ``DiscoverConfig.res`` is 0 (``causalgs discover`` calibrates on ``--res`` cells, 20 by default).
+
+The measurement's noise is not the jitter of the tracks alone. Tracked motion errs smoothly: a pattern's rigid
+motion is a little off for many frames together, which neither the jitter estimate
+(:func:`~causalgs.discover.observation.noise_floor`) nor the rigid floor sees. Measured on the flight of
+``causalgs synth toss --fps 120 --frames 48`` (128² images, 4.6 mm a pixel at the block), the tracked displacements
+missed the truth by 1–4 mm (median per frame), 1.45 mm RMS per coordinate, a third of a pixel, while the jitter
+estimate said 0.52 mm; a model with the true effect then stopped 1.6× above that "floor" and the gate turned it away.
+So a run's noise is at least :data:`RESOLVE` of a pixel's footprint at the bodies (the median over the training
+cameras of depth / focal length): what tracking from these images can resolve.
 """
 
 from __future__ import annotations
@@ -19,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from causalgs.discover.observation import Observation
+from causalgs.discover.observation import Observation, noise_floor
 from causalgs.errors import CausalGSError
 
 
@@ -30,7 +38,7 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = 6
     from causalgs.sim.effects import Effects
 
     run_dir = Path(run_dir)
-    model, _, tl = load_model(run_dir, "checkpoint.pt")
+    model, data, tl = load_model(run_dir, "checkpoint.pt")
     if model.particles is None:
         raise CausalGSError(f"{run_dir}: the fit has no simulated particles (its physical stage has not run)")
     n = tl.train_frames
@@ -74,8 +82,10 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = 6
     observed = max(3, n - round(held_out * n))
     obs = Observation(times=np.arange(n) / tl.fps, x=x, vol=vol, body=body, observed=observed, lo=lo, hi=hi,
                       density=rho, ground=ground, names=[f"body {b}" for b in range(int(body.max()) + 1)])  # fmt: skip
+    pixel = pixel_footprint(data.train, x[0].mean(0))
+    obs.noise = max(noise_floor(obs), RESOLVE * pixel)
     return obs, {"spec": eff.spec(), "learn": tuple(cfg.learn), "res": int(cfg.res), "run": str(run_dir),
-                 "stray": int(stray.sum())}  # fmt: skip
+                 "stray": int(stray.sum()), "pixel_m": pixel}  # fmt: skip
 
 
 def image_residuals(run_dir, obs: Observation, traj: dict, out_png, *, views: int = 4) -> dict | None:
@@ -130,6 +140,7 @@ def image_residuals(run_dir, obs: Observation, traj: dict, out_png, *, views: in
             "panel": "image | before | after | |before − image|×4 | |after − image|×4"}  # fmt: skip
 
 
+RESOLVE = 0.25  # of a pixel: the smallest position error a run's tracked motion is credited with (see above)
 STRAY_SHARE = 0.01  # groups of particles holding less than this share of them all are strays
 
 
@@ -149,6 +160,18 @@ def stray_particles(x: np.ndarray, cell: float, share: float = STRAY_SHARE) -> n
 
 
 TRACKING_DROP_DB = 3.0  # a frame this far below the median PSNR of the tracked motion has lost the images
+
+
+def pixel_footprint(frames, point: np.ndarray) -> float:
+    """The size (m) of one pixel at ``point``: depth over focal length, the median over the cameras of ``frames``."""
+    sizes = []
+    for cam in {id(f.camera): f.camera for f in frames}.values():
+        depth = float((cam.viewmat @ np.append(point, 1.0))[2])
+        if depth > 0:
+            sizes.append(depth / float(np.sqrt(cam.K[0, 0] * cam.K[1, 1])))
+    if not sizes:
+        raise CausalGSError("no training camera sees the bodies (all of them behind it)")
+    return float(np.median(sizes))
 
 
 def tracking_quality(run_dir, *, views: int = 4, drop_db: float = TRACKING_DROP_DB) -> dict:

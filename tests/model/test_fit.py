@@ -455,6 +455,13 @@ def test_discovery_reads_a_fitted_run(fitted, tmp_path):
         track, _ = m.trajectories(m.mixtures(x0), x0, None, n - 1, [n - 1])
     assert np.allclose(obs.x[-1], track[0].double().numpy(), atol=1e-6)
     assert base["res"] == m.config.physics.res and base["learn"] == tuple(m.config.physics.learn)
+    # The measurement's noise is at least a quarter of a pixel at the bodies (depth / focal length).
+    from causalgs.discover.video import RESOLVE
+
+    _, data0, _ = load_model(fitted)
+    cam = data0.train[0].camera
+    depth = (cam.viewmat @ np.append(obs.x[0].mean(0), 1.0))[2]
+    assert 0.5 < base["pixel_m"] / (depth / cam.K[0, 0]) < 2.0 and obs.noise >= RESOLVE * base["pixel_m"] - 1e-12
     assert f"d={float(m.effect_params[m.simulator().effects.param_names().index('ground.d')])!r}" in base["spec"]
     small, _ = observation_from_run(fitted, max_points=50)
     assert small.points < obs.points and np.isclose(small.vol.sum(), obs.vol.sum(), rtol=1e-6)
