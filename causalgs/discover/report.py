@@ -145,7 +145,7 @@ def markdown(report: dict) -> str:
                   f"ΔBIC {d['evidence']['delta_bic']:+.1f}; "
                   + ", ".join(f"{p} at {z:.1f} SE" for p, z in d["evidence"]["z"].items())]  # fmt: skip
             src = d.get("interval_sources") or {}
-            if src.get("se_rest_shape"):
+            if any(v for v in (src.get("se_rest_shape") or {}).values()):
                 ses = ", ".join(f"{p.split('.', 1)[1]} {src['se_noise'][p]:.3g} and {src['se_rest_shape'][p]:.3g}"
                                 for p in d["params"] if src["se_rest_shape"].get(p) is not None)  # fmt: skip
                 starts = src.get("starts_within")
