@@ -27,8 +27,11 @@ VERSION = 1
 
 
 def fingerprint(options: dict, x: np.ndarray) -> str:
-    """A digest of the run's options and its measurement (positions at full precision)."""
-    h = hashlib.sha256(json.dumps(options, sort_keys=True).encode())
+    """A digest of the run's options, its measurement (positions at full precision) and the causalgs version (a
+    calibration of another version may mean other things by the same θ)."""
+    from causalgs import __version__
+
+    h = hashlib.sha256(json.dumps({"options": options, "version": __version__}, sort_keys=True).encode())
     h.update(np.ascontiguousarray(x, dtype=np.float64).tobytes())
     return h.hexdigest()[:16]
 
