@@ -441,19 +441,21 @@ def test_pattern_velocity_is_a_blend_of_rigid_twists(fitted):
 def test_discovery_reads_a_fitted_run(fitted, tmp_path):
     """`causalgs discover RUN`: the measurement is the run's tracked particle motion over the observed window (the
     last quarter held out), the base model is the run's physics at its learned values; the report is written."""
-    from causalgs.discover.video import observation_from_run
+    from causalgs.discover.video import observation_from_run, stray_particles
     from causalgs.model.fit import load_model
     from cli.main import cli
 
     obs, base = observation_from_run(fitted)
     m, _, tl = load_model(fitted)
     n = tl.train_frames
-    assert obs.x.shape == (n, len(m.particles), 3) and obs.observed == n - round(0.25 * n)
-    assert np.isclose(obs.vol.sum(), float(m.particles.vol.sum()), rtol=1e-6)
     with torch.no_grad():
         x0 = m.particles.x0.to(m.fields.centres.dtype)
-        track, _ = m.trajectories(m.mixtures(x0), x0, None, n - 1, [n - 1])
-    assert np.allclose(obs.x[-1], track[0].double().numpy(), atol=1e-6)
+        track, _ = m.trajectories(m.mixtures(x0), x0, None, n - 1, [0, n - 1])
+    keep = ~stray_particles(track[0].double().numpy(), float(m.cell))  # every particle but the strays
+    assert base["stray"] == int((~keep).sum()) and keep.sum() > 0.9 * len(keep)
+    assert obs.x.shape == (n, int(keep.sum()), 3) and obs.observed == n - round(0.25 * n)
+    assert np.isclose(obs.vol.sum(), float(m.particles.vol.double().numpy()[keep].sum()), rtol=1e-6)
+    assert np.allclose(obs.x[-1], track[1].double().numpy()[keep], atol=1e-6)
     assert base["res"] == m.config.physics.res and base["learn"] == tuple(m.config.physics.learn)
     # The measurement's noise is at least a quarter of a pixel at the bodies (depth / focal length).
     from causalgs.discover.video import RESOLVE
