@@ -30,15 +30,32 @@ import torch
 from causalgs.discover.observation import Observation, noise_floor
 from causalgs.errors import CausalGSError
 
+_LOADED: dict = {}  # the last run loaded, by folder and checkpoint state: one discovery reads its run once
+
+
+def _load(run_dir):
+    """``load_model(run_dir)`` (the trained model, its dataset with every image, its timeline), kept for the next call
+    on the same run while its checkpoint is unchanged."""
+    from causalgs.model.fit import load_model
+
+    path = Path(run_dir).resolve()
+    ckpt = path / "checkpoint.pt"
+    st = ckpt.stat() if ckpt.is_file() else None
+    key = (str(path), None if st is None else (st.st_mtime_ns, st.st_size))
+    if key not in _LOADED:
+        loaded = load_model(run_dir, "checkpoint.pt")
+        _LOADED.clear()
+        _LOADED[key] = loaded
+    return _LOADED[key]
+
 
 def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = 600, min_share: float = 0.05,
                          seed: int = 0) -> tuple[Observation, dict]:  # fmt: skip
     """The observation described in the module docstring and the run's base model: ``{"spec", "learn", "res"}``."""
-    from causalgs.model.fit import load_model
     from causalgs.sim.effects import Effects
 
     run_dir = Path(run_dir)
-    model, data, tl = load_model(run_dir, "checkpoint.pt")
+    model, data, tl = _load(run_dir)
     if model.particles is None:
         raise CausalGSError(f"{run_dir}: the fit has no simulated particles (its physical stage has not run)")
     n = tl.train_frames
@@ -99,9 +116,8 @@ def image_residuals(run_dir, obs: Observation, traj: dict, out_png, *, views: in
 
     from causalgs.io import write_image
     from causalgs.metrics.pixel import psnr
-    from causalgs.model.fit import load_model
 
-    model, data, tl = load_model(run_dir, "checkpoint.pt")
+    model, data, tl = _load(run_dir)
     held = set(range(obs.observed, len(obs.times)))
     frames = [f for f in data.val if tl.index(f) in held]
     cams = sorted({f.view for f in frames if f.view is not None})[:views]
@@ -181,9 +197,8 @@ def tracking_quality(run_dir, *, views: int = 4, drop_db: float = TRACKING_DROP_
     images (an impact it smoothed over, say): a disagreement there may be the measurement's, not the physics'.
     Returns ``{"frames", "psnr", "median", "poor", "views"}``."""
     from causalgs.metrics.pixel import psnr
-    from causalgs.model.fit import load_model
 
-    model, data, tl = load_model(run_dir, "checkpoint.pt")
+    model, data, tl = _load(run_dir)
     bg = tuple(float(b) for b in data.background)
     cams = sorted({f.view for f in data.train if f.view is not None})
     cams = set(cams[:: max(1, len(cams) // views)][:views]) if cams else None
