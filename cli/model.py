@@ -62,7 +62,7 @@ def fit(data, out, preset, config_path, overrides, no_physics, resume, seed, dev
     An interrupted fit continues with --resume. The resolved config is saved as config.toml.
     """
     from causalgs import _ti
-    from causalgs.model.config import FitConfig, from_dict, to_dict
+    from causalgs.model.config import FitConfig, apply_override, from_dict, to_dict
     from causalgs.model.fit import fit as run_fit
 
     if resume:
@@ -76,7 +76,7 @@ def fit(data, out, preset, config_path, overrides, no_physics, resume, seed, dev
         if no_physics:
             d["physics"]["enabled"] = False
         for item in overrides:
-            _apply_override(d, item)
+            apply_override(d, item)
         config = from_dict(FitConfig, d)
     precision = config.precision if config else FitConfig.load(Path(out) / "config.toml").precision
     _ti.init(device, precision)
@@ -87,25 +87,6 @@ def fit(data, out, preset, config_path, overrides, no_physics, resume, seed, dev
     click.echo(f"Fitted {info['data']} -> {out}: {int(model.dynamic.sum())} dynamic / {model.gaussians.n} Gaussians, "
                f"{len(model.particles) if model.particles is not None else 0} particles, "
                f"{info['total_seconds']:.0f} s")  # fmt: skip
-
-
-def _apply_override(d: dict, item: str) -> None:
-    import tomllib
-
-    key, eq, value = item.partition("=")
-    if not eq:
-        raise CausalGSError(f"--set {item}: expected KEY=VALUE")
-    try:
-        parsed = tomllib.loads(f"v = {value}")["v"]
-    except tomllib.TOMLDecodeError:
-        parsed = value  # a bare string
-    *path, last = key.strip().split(".")
-    node = d
-    for p in path:
-        if not isinstance(node.get(p), dict):
-            raise CausalGSError(f"--set {item}: no settings group '{p}'")
-        node = node[p]
-    node[last] = parsed
 
 
 @click.command()

@@ -9,10 +9,11 @@ A refit candidate is accepted only if all of these hold (``../shared/DISCOVERY.m
 3. every new parameter is at least ``sigmas`` (3) standard errors from its "off" value, the standard errors from a
    moving-block bootstrap over frames of the linearised refit (naive Gauss–Newton errors assume independent
    residuals and come out far too small);
-4. the refit reaches the floor: its fit-window RMS is within ``floor_factor`` (1.1×) of the best any model
-   reached on this data, below the base's, and within ``noise_factor`` (1.25×) of the noise floor measured from
-   the data (:func:`causalgs.discover.residuals.rigid_floor`); otherwise the candidate explains only part of the
-   discrepancy ("not converged", or an effect the catalogue does not name).
+4. the refit reaches the floor: its fit-window RMS is below the base's, within ``floor_factor`` (1.1×) of the best
+   any model reached on this data or of the noise floor measured from the data, whichever is larger
+   (:func:`causalgs.discover.residuals.rigid_floor`; below the noise, a better fit of the window is fitting the
+   noise and tells candidates nothing), and within ``noise_factor`` (1.25×) of that noise floor; otherwise the
+   candidate explains only part of the discrepancy ("not converged", or an effect the catalogue does not name).
 
 Intervals are the bootstrap's 2.5–97.5% percentiles around the fitted value.
 """
@@ -79,7 +80,8 @@ def judge(*, base_train: float, base_future: float, train: float, future: float,
     the same unit (None: not checked)."""
     drop = 1.0 - future / max(base_future, 1e-300)
     d_bic = bic(train, n_eff, k_base + k_new) - bic(base_train, n_eff, k_base)
-    floor_ok = train <= (cfg.floor_factor**2) * best_train and train < base_train
+    reached = max(best_train, noise) if noise is not None else best_train
+    floor_ok = train <= (cfg.floor_factor**2) * reached and train < base_train
     noise_ok = noise is None or train <= (cfg.noise_factor**2) * noise
     checks = {
         "future_drop": drop,

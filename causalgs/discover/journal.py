@@ -7,6 +7,12 @@ inputs, so every calibration is named by where it happens (``"base/1e+05"``, ``"
 ends (atomically). A run resumed on the same inputs (the same options and the same measurement, checked by a
 fingerprint) takes every finished calibration from the file and only computes what is left; a file of other inputs
 is a one-line error rather than a silently mixed result.
+
+The fingerprint covers what a calibration's result depends on (:func:`calibration_options`: the model, its grid,
+the starts, the iteration budget), not what decides between results (the gate, the ambiguity margins, the number
+of rounds): a run re-judged with another gate reuses every calibration it still needs. Names carry the effects
+accepted before their round (``"round 2 after linear_drag/force/start 1"``), so a round that starts from another
+model never takes a calibration of the old one.
 """
 
 from __future__ import annotations
@@ -24,6 +30,15 @@ from causalgs.errors import CausalGSError
 from causalgs.io import read_json, write_json
 
 VERSION = 1
+
+
+def calibration_options(spec: str, learn, cfg, start: dict | None = None) -> dict:
+    """What the results of a discovery run's calibrations depend on, besides the measurement: the base model
+    (``spec``, ``learn``, the start values ``start``) and of ``cfg`` (a
+    :class:`~causalgs.discover.search.DiscoverConfig`) the grid, the starting stiffnesses, the iteration budget and
+    the warm-up horizon."""
+    return {"spec": spec, "learn": list(learn), "start": start, "res": cfg.res, "starts": list(cfg.starts),
+            "iterations": cfg.iterations, "warm": cfg.warm}  # fmt: skip
 
 
 def fingerprint(options: dict, x: np.ndarray) -> str:

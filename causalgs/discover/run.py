@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from causalgs.discover.journal import Journal, fingerprint
+from causalgs.discover.journal import Journal, calibration_options, fingerprint
 from causalgs.discover.observation import Observation, load_observation
 from causalgs.discover.report import write_outputs
 from causalgs.discover.search import DiscoverConfig, discover
@@ -63,7 +63,7 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
                "config": dataclasses.asdict(cfg)}  # fmt: skip
     if (out / "report.json").is_file() and not (out / "progress.json").is_file() and not resume:
         raise CausalGSError(f"{out} already holds a discovery report: choose another --out")
-    journal = Journal(out / "progress.json", fingerprint({k: v for k, v in options.items() if k != "source"}, obs.x),
+    journal = Journal(out / "progress.json", fingerprint(calibration_options(spec, learn, cfg), obs.x),
                       resume=resume)  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "discover.json", options)

@@ -5,8 +5,8 @@ name, repair, repeat.
 
 - ``"discovered"``: one or more named effects passed the gate, in the order they were added;
 - ``"ambiguous"``: two or more candidates passed in the same round and the data does not separate them (their
-  information criteria are within a margin, and their held-out errors within a margin or within the refits' own
-  uncertainty, a paired bootstrap); all are listed as the ambiguity set;
+  held-out errors within a margin or within the refits' own uncertainty, a paired bootstrap, and their information
+  criteria within a margin); all are listed as the ambiguity set (:func:`choose`);
 - ``"no missing effect"``: no candidate passed and a small free residual force does not help either;
 - ``"unexplained discrepancy"``: no candidate passed, but the base stays well above the noise floor on the fit
   window or, further still, on the held-out frames
@@ -343,20 +343,33 @@ def future_gap(a: State, b: State, level: float = 0.95) -> tuple[float, float] |
     return float(np.quantile(d, q)), float(np.quantile(d, 1 - q))
 
 
-def _tied(top, other, cfg: DiscoverConfig) -> bool:
-    """Two passing candidates the data does not separate: their information criteria within
-    ``cfg.ambiguity_bic``, and the held-out frames preferring ``top`` by no more than ``cfg.ambiguity_future``
-    (relative) or not beyond the refits' own uncertainty: the 95% interval of the difference over paired
-    resamples (the residuals' block bootstrap, and draws of the rest shape's error, which every simulation starts
-    from) reaches zero. On the hidden-effect table's drags the rest shape's share is the larger: a true linear drag
-    whose held-out frames favoured the quadratic law by 32% had an interval of [−0.021, 0.135] cm² with it and
-    [0.028, 0.046] cm² without."""
-    if abs(other[3].checks["delta_bic"] - top[3].checks["delta_bic"]) >= cfg.ambiguity_bic:
-        return False
-    if other[1].future <= top[1].future * (1 + cfg.ambiguity_future):
+def _future_close(best, other, cfg: DiscoverConfig) -> bool:
+    """The held-out frames do not tell ``other`` from ``best`` (the passer with the lowest held-out error): its
+    held-out error is within ``cfg.ambiguity_future`` (relative) of the best's, or beyond it but not beyond the
+    refits' own uncertainty: the 95% interval of the difference over paired resamples (the residuals' block
+    bootstrap, and draws of the rest shape's error, which every simulation starts from) reaches zero. On the
+    hidden-effect table's drags the rest shape's share is the larger: a true linear drag whose held-out frames
+    favoured the quadratic law by 32% had an interval of [−0.021, 0.135] cm² with it and [0.028, 0.046] cm² without."""
+    if other[1].future <= best[1].future * (1 + cfg.ambiguity_future):
         return True
-    gap = future_gap(top[1], other[1])
+    gap = future_gap(best[1], other[1])
     return gap is not None and gap[0] <= 0.0
+
+
+def choose(passed: list, cfg: DiscoverConfig) -> tuple:
+    """(top, ties) among the candidates that passed the gate, as (candidate, state, uncertainty, verdict) tuples.
+
+    The held-out frames speak first: only the passers they do not tell from the one with the lowest held-out error
+    stay in (:func:`_future_close`). Among those the fit window decides: the lowest BIC is the top, and every other
+    within ``cfg.ambiguity_bic`` of it is not separated from it (an ambiguity set). On a tracked flight with a
+    hidden linear drag, the linear and quadratic laws' held-out errors were 2% apart and their BICs 108 apart: the
+    quadratic law's lower held-out error alone would have named the wrong one."""
+    best = min(passed, key=lambda t: t[1].future)
+    close = [p for p in passed if p is best or _future_close(best, p, cfg)]
+    top = min(close, key=lambda t: t[3].checks["delta_bic"])
+    bic_top = top[3].checks["delta_bic"]
+    ties = [p for p in close if p is not top and abs(p[3].checks["delta_bic"] - bic_top) < cfg.ambiguity_bic]
+    return top, ties
 
 
 def pick_finalists(screened, signatures: dict, cfg: DiscoverConfig) -> list:
@@ -451,6 +464,9 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         if not pool:
             break
         log(f"round {round_ + 1}: screening {', '.join(c.key for c in pool)}")
+        # the journal's name of this round: its number and the effects accepted before it (the model it starts from)
+        accepted = [d["effect"] for d in report["discovered"]]
+        where = f"round {round_ + 1}" + (f" after {'+'.join(accepted)}" if accepted else "")
         screened = screen(current.model, current.fit.theta, pool, fit_frames(current.model))
         sig = report["disagreement"]["signatures"] if round_ == 0 else current_signatures(current, obs)
         finalists = pick_finalists(screened, sig, cfg)
@@ -462,7 +478,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         for s in finalists:
             log(f"  refitting {s.candidate.key}")
             try:
-                st = _refit(current, s, cfg, journal, f"round {round_ + 1}")
+                st = _refit(current, s, cfg, journal, where)
             except CausalGSError as e:
                 entry["refits"].append({"effect": s.candidate.key, "error": str(e)})
                 continue
@@ -473,7 +489,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
                 if st_i.train > cfg.polish_within * lead:
                     continue
                 log(f"  polishing {c_i.key}")
-                polished = journal.calibrate(f"round {round_ + 1}/{c_i.key}/polish", st_i.model, st_i.fit.theta,
+                polished = journal.calibrate(f"{where}/{c_i.key}/polish", st_i.model, st_i.fit.theta,
                                              iterations=2 * cfg.iterations)
                 if polished.loss < st_i.fit.loss:
                     refits[i] = (c_i, _state(st_i.model, polished))
@@ -503,9 +519,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
             passed = [(c_p, st_p, _uncertainty(st_p, c_p.params, cfg,
                                                rest_sigma=rest_shape_error(st_p, obs, floor_coord, sigma)), v_p)
                       for c_p, st_p, _, v_p in passed]  # fmt: skip
-        passed.sort(key=lambda t: t[1].future)
-        top = passed[0]
-        ties = [p for p in passed[1:] if _tied(top, p, cfg)]
+        top, ties = choose(passed, cfg)
         if ties:
             report["ambiguous"] = [
                 {"effect": c.key, "law": _law(c, unc), "future_mse_cm2": st.future,
@@ -518,7 +532,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         # Polish the accepted refit (again, if it was polished above): a missing effect and the throw trade off
         # along a long valley (a lower upward throw against an upward push over a short flight); the value and its
         # interval are quoted from the converged fit.
-        polished = journal.calibrate(f"round {round_ + 1}/{c.key}/polish accepted", st.model, st.fit.theta,
+        polished = journal.calibrate(f"{where}/{c.key}/polish accepted", st.model, st.fit.theta,
                                      iterations=2 * cfg.iterations)
         if polished.loss < st.fit.loss:
             st, st.starts = _state(st.model, polished), st.starts

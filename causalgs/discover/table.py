@@ -28,6 +28,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from causalgs.discover.journal import Journal, calibration_options, fingerprint
 from causalgs.discover.observation import Observation, synthesize
 from causalgs.discover.report import finite
 from causalgs.discover.search import DiscoverConfig, discover
@@ -154,8 +155,12 @@ def _run_one(case_name: str, seed: int, cfg: TableConfig, out: Path, log=None) -
     obs.save(folder / "observation.npz")
     start, starts = _start(case, obs)
     dcfg = cfg.discover if starts is None else dataclasses.replace(cfg.discover, starts=starts)
+    # Every calibration is kept as it finishes (the case's progress.json): a table re-run after a change of the
+    # gate, or after a stop, recomputes only the calibrations that change.
+    key = fingerprint(calibration_options(case.model, case.learn, dcfg, start), obs.x)
     try:
-        report, traj = discover(obs, case.model, case.learn, config=dcfg, log=log, start=start)
+        journal = Journal(folder / "progress.json", key, resume=True)
+        report, traj = discover(obs, case.model, case.learn, config=dcfg, log=log, start=start, journal=journal)
     except CausalGSError as e:  # one failing case is a row of the table, not the end of it
         return _failed(case, seed, str(e), time.monotonic() - t0)
     report["source"] = str(folder / "observation.npz")
@@ -217,7 +222,10 @@ def run_table(out, cfg: TableConfig | None = None, log=None) -> list[dict]:
     out.mkdir(parents=True, exist_ok=True)
     done = {}
     if (out / "table.json").is_file():
-        done = {(r["case"], r["seed"]): r for r in read_json(out / "table.json", "table").get("rows", [])}
+        saved = read_json(out / "table.json", "table")
+        if saved.get("level", "trajectory") != "trajectory":
+            raise CausalGSError(f"{out / 'table.json'} is a {saved['level']}-level table: choose another --out")
+        done = {(r["case"], r["seed"]): r for r in saved.get("rows", [])}
     rows = list(done.values())
     todo = [k for k in plan(cfg) if k not in done]
 

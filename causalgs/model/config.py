@@ -219,3 +219,22 @@ def _check_types(obj, hints: dict, where: str) -> None:
             raise CausalGSError(f"{where}.{f.name} = {v!r} must be a number")
         if t is str and not isinstance(v, str):
             raise CausalGSError(f"{where}.{f.name} = {v!r} must be a string")
+
+
+def apply_override(d: dict, item: str) -> None:
+    """Set ``KEY=VALUE`` (``causalgs fit --set``: a dotted key, a TOML value or a bare string) in the config
+    dict ``d``; an unknown group or a missing '=' is a one-line error."""
+    key, eq, value = item.partition("=")
+    if not eq:
+        raise CausalGSError(f"--set {item}: expected KEY=VALUE")
+    try:
+        parsed = tomllib.loads(f"v = {value}")["v"]
+    except tomllib.TOMLDecodeError:
+        parsed = value  # a bare string
+    *path, last = key.strip().split(".")
+    node = d
+    for p in path:
+        if not isinstance(node.get(p), dict):
+            raise CausalGSError(f"--set {item}: no settings group '{p}'")
+        node = node[p]
+    node[last] = parsed

@@ -225,6 +225,11 @@ def test_gate_statistics():
     weak = judge(base_train=4.0, base_future=9.0, train=1.0, future=2.0, best_train=1.0, k_new=1, n_eff=300,
                  k_base=8, z={"c": 1.0}, cfg=cfg)  # fmt: skip
     assert not weak.passed and "not significant" in weak.reasons[0]
+    # Below the noise floor, a better fit of the window by another refit does not turn this one away ...
+    near = dict(base_train=4.0, base_future=9.0, future=2.0, k_new=1, n_eff=300, k_base=8, z={"c": 8.0}, cfg=cfg)
+    assert not judge(train=1.4, best_train=1.0, **near).passed  # 1.18× the best, no floor given
+    assert judge(train=1.4, best_train=1.0, noise=1.6, **near).passed  # 1.18× the best, under the floor
+    assert not judge(train=2.2, best_train=1.0, noise=1.6, **near).passed  # 1.17× above the floor
     no_future = judge(base_train=4.0, base_future=9.0, train=1.0, future=8.5, best_train=1.0, k_new=1, n_eff=300,
                       k_base=8, z={"c": 8.0}, cfg=cfg)  # fmt: skip
     assert not no_future.passed
@@ -377,12 +382,13 @@ def test_intervals_cover_refit_starts_the_data_cannot_tell_apart():
     assert unc["drag.c"]["interval"] == [0.58, 0.62]  # the input is not changed
 
 
-def test_two_passing_candidates_tie_unless_the_data_separates_them():
-    """Ambiguous when the information criteria are close and the held-out frames prefer the first by less than the
-    margin or by less than the paired bootstrap of the refits' own uncertainty; told apart otherwise."""
+def test_choice_among_passers_held_out_first_then_bic():
+    """The held-out frames keep the passers they do not tell from the best (within the 15% margin, or not beyond the
+    paired bootstrap of the refits' own uncertainty); among those the lowest BIC is named, and any within 10 of it
+    ties with it."""
     from types import SimpleNamespace
 
-    from causalgs.discover.search import DiscoverConfig, _tied, future_gap
+    from causalgs.discover.search import DiscoverConfig, choose, future_gap
 
     cfg = DiscoverConfig()
     rng = np.random.default_rng(0)
@@ -392,16 +398,28 @@ def test_two_passing_candidates_tie_unless_the_data_separates_them():
         st = SimpleNamespace(future=future, future_samples=future + spread * noise)
         return (None, st, None, SimpleNamespace(checks={"delta_bic": bic}))
 
+    def pick(*c):
+        top, ties = choose(list(c), cfg)
+        at = {id(x): i for i, x in enumerate(c)}
+        return [at[id(top)], *sorted(at[id(t)] for t in ties)]
+
     top = cand(-120.0, 0.10, 1.0)
-    assert not _tied(top, cand(-100.0, 0.10, 1.0), cfg)  # the fit window separates them
-    assert _tied(top, cand(-118.0, 0.11, 1.0), cfg)  # within the 15% margin
-    assert not _tied(top, cand(-118.0, 0.14, 1.0), cfg)  # 40% worse, the bootstrap spread is small
+    assert pick(top, cand(-100.0, 0.10, 1.0)) == [0]  # the fit window separates them
+    assert pick(top, cand(-118.0, 0.11, 1.0)) == [0, 1]  # within the 15% margin and within 10 of BIC
+    assert pick(top, cand(-118.0, 0.14, 1.0)) == [0]  # 40% worse, the bootstrap spread is small
+    assert pick(top, cand(-200.0, 0.14, 1.0)) == [0]  # ... however much better its fit window
     wide = cand(-118.0, 0.14, 6.0)  # same excess, but the refits are uncertain: the paired interval reaches zero
     assert future_gap(top[1], wide[1])[0] < 0 < future_gap(top[1], wide[1])[1]
-    assert _tied(top, wide, cfg)
+    assert pick(top, wide) == [0, 1]
     paired = cand(-118.0, 0.14, 6.0)
     top_wide = cand(-120.0, 0.10, 6.0)  # both move together with the shared resamples: the gap is certain
-    assert future_gap(top_wide[1], paired[1])[0] > 0 and not _tied(top_wide, paired, cfg)
+    assert future_gap(top_wide[1], paired[1])[0] > 0 and pick(top_wide, paired) == [0]
+    # The tracked flight's round: a uniform force far worse on the held-out frames; quadratic drag 2% better
+    # there than linear drag, whose BIC is 108 better. The linear drag is named, alone.
+    force, linear, quadratic = cand(-60.0, 0.278, 0.1), cand(-400.0, 0.039, 0.1), cand(-292.0, 0.038, 0.1)
+    assert pick(force, linear, quadratic) == [1]
+    # ... and with BICs within 10 of each other, the two laws are an ambiguity set, the force left out
+    assert pick(force, cand(-400.0, 0.039, 0.1), cand(-395.0, 0.038, 0.1)) == [1, 2]
 
 
 def test_rest_shape_error_moves_the_fit_as_the_law_says():

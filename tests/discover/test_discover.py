@@ -117,7 +117,12 @@ def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_
     again = json.loads(r.output)
     assert again["calibrations_resumed"] == len(done)
     assert again["discovered"][0]["params"] == rep["discovered"][0]["params"]
-    r = CliRunner().invoke(cli, [*args[:-3], "--max-effects", "2", "--resume"])  # other options: not mixed in
+    # Options that decide between calibrations (how many effects at most) reuse them; options that change a
+    # calibration's result (its iteration budget) are not mixed in.
+    r = CliRunner().invoke(cli, [*args[:-3], "--max-effects", "2", "--resume", "--json"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output)["calibrations_resumed"] >= len(done)
+    r = CliRunner().invoke(cli, [*args[:-5], "--iterations", "13", "--max-effects", "1", "--resume"])
     assert r.exit_code == 1 and "made with other options" in r.output, r.output
     bad = [
         (["discover", str(tmp_path / "missing.npz"), "--out", str(out)], "no such observation file"),
@@ -174,8 +179,9 @@ def test_table_resumes_and_records_failures(tmp_path, monkeypatch):
 
     calls = []
 
-    def fake_discover(obs, spec, learn, config=None, log=None, start=None):
+    def fake_discover(obs, spec, learn, config=None, log=None, start=None, journal=None):
         calls.append(spec)
+        assert journal.path.name == "progress.json" and journal.path.parent.parent == tmp_path
         if "attractor" in obs.truth["scene_spec"]:
             raise CausalGSError("the simulation blew up at frame 3")
         return _fake_report(None), {"before": obs.x[1:], "after": obs.x[1:]}

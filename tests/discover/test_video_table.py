@@ -1,0 +1,142 @@
+"""The video-level hidden-effect table: its plan, the tracking error it reports, and how it resumes each stage
+(synth → fit → discover). The stages themselves are tested where they live (the synthetic scenes, the fit, discovery
+on a run); here they are replaced by recorders that write what the real ones write, so that the table's bookkeeping
+is checked in seconds. The real table is `causalgs discover-table --level video`."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+import causalgs.discover.video_table as V
+from causalgs.errors import CausalGSError
+
+
+def test_the_plan_covers_every_case_once_before_any_twice():
+    cfg = V.VideoTableConfig(seeds=2, control_seeds=3)
+    plan = V.plan(cfg)
+    n = len(V.CASES)
+    controls = [c.name for c in V.CASES if c.kind == "control"]
+    assert plan[:n] == [(c.name, 0) for c in V.CASES]
+    assert len(plan) == 2 * n + len(controls) and plan[-len(controls):] == [(c, 2) for c in controls]
+    only = V.plan(V.VideoTableConfig(only=("linear_drag", "outside"), first_seed=5))
+    assert only == [("linear_drag", 5), ("outside: attractor", 5)]
+    # every effect of the catalogue is hidden in one case, with a control for each window and one outside it
+    from causalgs.discover.candidates import select
+
+    assert {c.expect for c in V.CASES if c.kind in ("hidden", "pair")} == {c.key for c in select(None)}
+    assert {c.frames for c in V.CASES if c.kind == "control"} == {V.FLIGHT, V.LANDING}
+
+
+def test_tracking_error_against_a_plain_reference(tmp_path):
+    """RMS per coordinate of tracked minus true displacements, at tracked points within 1 cm of a true point (a
+    point far from every true one, say on the ground, is left out)."""
+    rng = np.random.default_rng(0)
+    frames, n = 6, 40
+    gt = rng.uniform(-0.2, 0.2, (1, n, 3)) + np.linspace(0, 0.3, frames)[:, None, None] * np.array([1.0, 0.0, 0.5])
+    (tmp_path / "gt").mkdir()
+    np.savez(tmp_path / "gt" / "motion.npz", particles=np.concatenate([gt, gt[-1:]]))  # one frame past the window
+    pick = rng.choice(n, 15, replace=False)
+    err = 0.002 * rng.standard_normal((frames, 15, 3))
+    x = gt[:, pick] + 0.003 + err  # a constant offset does not count: displacements are compared
+    stray = np.full((frames, 1, 3), 5.0)
+    obs = SimpleNamespace(x=np.concatenate([x, stray], axis=1))
+    e = (err - err[:1])[1:]
+    assert V.tracking_error(obs, tmp_path) == pytest.approx(float(np.sqrt((e**2).mean())), rel=1e-12)
+    assert V.tracking_error(SimpleNamespace(x=stray), tmp_path) is None
+
+
+def _recorders(monkeypatch, calls, *, fail=()):
+    """Stand-ins for the three stages that write what the real ones leave behind."""
+
+    def generate(name, data, **kw):
+        calls.append(("synth", kw["effects"]))
+        Path(data).mkdir(parents=True, exist_ok=True)
+        (Path(data) / "transforms_train.json").write_text("{}")
+
+    def fit(data, run, config=None, *, resume=False):
+        calls.append(("fit-resume" if resume else "fit", str(run)))
+        run = Path(run)
+        run.mkdir(parents=True, exist_ok=True)
+        if config is not None:
+            (run / "config.toml").write_text(config.physics.effects)
+        (run / "checkpoint.pt").write_text("")
+        if "stop" in str(run) and not resume:
+            raise KeyboardInterrupt  # the fit stops half-way: a checkpoint, no finished run.json
+        (run / "run.json").write_text(json.dumps({"status": "done", "total_seconds": 700.0}))
+
+    def discover(run, out, *, config, log, resume):
+        calls.append(("discover", resume))
+        if "attractor" in str(run):
+            raise CausalGSError("the simulation blew up at frame 3")
+        found = [{"effect": "linear_drag", "params": {"linear_drag.c": 2.85},
+                  "interval": {"linear_drag.c": [2.7, 3.1]}}] if "drag" in str(run) else []  # fmt: skip
+        rep = {"verdict": "discovered" if found else "no missing effect", "discovered": found, "ambiguous": [],
+               "error_before": {"future_rms_m": 0.012}, "error_after": {"future_rms_m": 0.001 if found else 0.012},
+               "floor_rms_m": 0.0012, "seconds": 300.0, "noise": 0.0011,
+               "images": {"psnr_before": 25.0, "psnr_after": 32.5}}  # fmt: skip
+        return rep, SimpleNamespace(x=np.zeros((3, 2, 3)))
+
+    monkeypatch.setattr(V, "_generate", generate)
+    monkeypatch.setattr(V, "_run_fit", fit)
+    monkeypatch.setattr(V, "_discover", discover)
+    monkeypatch.setattr(V, "tracking_error", lambda obs, data: 0.0015)
+
+
+def test_the_table_resumes_each_stage_and_records_failures(tmp_path, monkeypatch):
+    calls = []
+    _recorders(monkeypatch, calls)
+    cfg = V.VideoTableConfig(only=("linear_drag", "friction", "outside: attractor"))
+    rows = V.run_video_table(tmp_path, cfg)
+    assert [c[0] for c in calls].count("synth") == 3 and [c[0] for c in calls].count("fit") == 3
+    assert all(c == ("discover", True) for c in calls if c[0] == "discover")  # a stopped discovery goes on
+    by = {r["case"]: r for r in rows}
+    drag = by["linear_drag"]
+    assert drag["first_ok"] and drag["param_error"] == pytest.approx(0.05) and drag["interval_covers"]
+    assert drag["fit_seconds"] == 700.0 and drag["tracking_rms_m"] == 0.0015 and drag["psnr_after"] == 32.5
+    assert by["outside: attractor"]["verdict"] == "failed: the simulation blew up at frame 3"
+    assert not by["friction"]["first_ok"]  # the stand-in found nothing
+    # the friction case's model lacks the friction: its fit is told so
+    assert (tmp_path / "friction-s0" / "run" / "config.toml").read_text() == "gravity;ground:mu=0.0;walls"
+    saved = json.loads((tmp_path / "table.json").read_text())
+    assert saved["level"] == "video" and saved["summary"]["runs"] == 3
+    assert "| linear_drag | 0 | ✓ discovered |" in (tmp_path / "table.md").read_text()
+    n = len(calls)
+    V.run_video_table(tmp_path, cfg)  # every row is there: nothing runs again
+    assert len(calls) == n
+    # a new seed of the same case reuses nothing of seed 0, and a stopped fit goes on from its checkpoint
+    cfg1 = V.VideoTableConfig(only=("linear_drag",), first_seed=1)
+    (tmp_path / "table.json").unlink()
+    rows = V.run_video_table(tmp_path, cfg1)
+    assert calls[n:] == [("synth", V.BY_NAME["linear_drag"].scene), ("fit", str(tmp_path / "linear-drag-s1" / "run")),
+                         ("discover", True)]  # fmt: skip
+    # a row lost with its table: the finished dataset and run are kept, only discovery runs (and resumes)
+    (tmp_path / "table.json").unlink()
+    m = len(calls)
+    V.run_video_table(tmp_path, cfg1)
+    assert calls[m:] == [("discover", True)]
+
+
+def test_a_stopped_fit_resumes_and_other_tables_are_refused(tmp_path, monkeypatch):
+    calls = []
+    _recorders(monkeypatch, calls)
+    monkeypatch.setattr(V, "_slug", lambda name: "stop-" + name.replace(" ", "").replace(":", ""))
+    cfg = V.VideoTableConfig(only=("control: flight",))
+    with pytest.raises(KeyboardInterrupt):
+        V.run_video_table(tmp_path, cfg)
+    rows = V.run_video_table(tmp_path, cfg)
+    assert [c[0] for c in calls] == ["synth", "fit", "fit-resume", "discover"]
+    assert rows[0]["first_ok"]
+    from causalgs.discover.table import TableConfig, run_table
+
+    with pytest.raises(CausalGSError, match="video-level table"):
+        run_table(tmp_path, TableConfig(only=("control: clean",)))
+    traj = tmp_path / "traj"
+    traj.mkdir()
+    (traj / "table.json").write_text(json.dumps({"rows": []}))
+    with pytest.raises(CausalGSError, match="not a video-level table"):
+        V.run_video_table(traj, cfg)
