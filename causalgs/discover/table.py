@@ -188,10 +188,10 @@ def _worker(case_name: str, seed: int, cfg: TableConfig, out: str) -> dict:
     return _run_one(case_name, seed, cfg, Path(out))
 
 
-def plan(cfg: TableConfig) -> list[tuple[str, int]]:
-    """The (case, seed) runs of a table, seed by seed (every case once before any twice: an interrupted table
-    covers every case)."""
-    cases = [c for c in CASES if not cfg.only or c.name in cfg.only or c.kind in cfg.only]
+def plan(cfg, cases=CASES) -> list[tuple[str, int]]:
+    """The (case, seed) runs of a table (``cfg``: its seeds, control seeds and ``only``), seed by seed (every case
+    once before any twice: an interrupted table covers every case)."""
+    cases = [c for c in cases if not cfg.only or c.name in cfg.only or c.kind in cfg.only]
     counts = {c.name: cfg.control_seeds if c.kind == "control" and cfg.control_seeds is not None else cfg.seeds
               for c in cases}  # fmt: skip
     out = []
@@ -214,48 +214,67 @@ def run_table(out, cfg: TableConfig | None = None, log=None) -> list[dict]:
     ``out/table.json`` and ``out/table.md`` (updated after every run, so an interrupted table keeps its rows; rows
     already in ``table.json`` are not run again). ``cfg.jobs`` > 1 runs that many cases at once, each in a fresh
     process (Taichi and torch share the cores between them)."""
-    from causalgs.io import read_json
 
     cfg = cfg or TableConfig()
     log = log or (lambda msg: None)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    done = {}
-    if (out / "table.json").is_file():
-        saved = read_json(out / "table.json", "table")
-        if saved.get("level", "trajectory") != "trajectory":
-            raise CausalGSError(f"{out / 'table.json'} is a {saved['level']}-level table: choose another --out")
-        done = {(r["case"], r["seed"]): r for r in saved.get("rows", [])}
-    rows = list(done.values())
-    todo = [k for k in plan(cfg) if k not in done]
+    rows, todo = pending(out, "trajectory", plan(cfg))
 
     def finish(row: dict) -> None:
         rows.append(row)
         log(f"{row['case']}, seed {row['seed']} -> {row['verdict']} {row['found']} ({row['seconds']:.0f} s)")
         _write(out, rows, cfg)
 
-    if cfg.jobs <= 1:
+    def local(name: str, seed: int) -> dict:
+        log(f"{name}, seed {seed}")
+        return _run_one(name, seed, cfg, out, log)
+
+    execute(todo, cfg.jobs, local, _worker, (cfg, str(out)), lambda n, s, why: _failed(BY_NAME[n], s, why, 0.0),
+            finish, log)  # fmt: skip
+    return rows
+
+
+def pending(out: Path, level: str, runs: list) -> tuple[list[dict], list]:
+    """(the rows ``out/table.json`` holds, the runs of ``runs`` it lacks); a table of another level there is a
+    one-line error."""
+    from causalgs.io import read_json
+
+    done = {}
+    if (out / "table.json").is_file():
+        saved = read_json(out / "table.json", "table")
+        if saved.get("level", "trajectory") != level:
+            raise CausalGSError(f"{out / 'table.json'} is a {saved.get('level', 'trajectory')}-level table, not a "
+                                f"{level}-level one: choose another --out")  # fmt: skip
+        done = {(r["case"], r["seed"]): r for r in saved.get("rows", [])}
+    return list(done.values()), [k for k in runs if k not in done]
+
+
+def execute(todo: list, jobs: int, local, worker, args: tuple, failed, finish, log) -> None:
+    """Run every (case, seed) of ``todo`` and hand each row to ``finish`` as it ends: here, one after the other
+    (``jobs`` 1: ``local(case, seed)``), or ``jobs`` at once, each in a fresh spawned process
+    (``worker(case, seed, *args)``, a module-level function; Taichi and torch share the cores between them). A
+    crashed worker is a row of the table (``failed(case, seed, why)``), not the end of it."""
+    if jobs <= 1:
         for name, seed in todo:
-            log(f"{name}, seed {seed}")
-            finish(_run_one(name, seed, cfg, out, log))
-        return rows
+            finish(local(name, seed))
+        return
     import multiprocessing
     import os
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
-    threads = max(1, (os.cpu_count() or 1) // cfg.jobs)
+    threads = max(1, (os.cpu_count() or 1) // jobs)
     ctx = multiprocessing.get_context("spawn")  # Taichi's runtime must not be forked
-    with ProcessPoolExecutor(cfg.jobs, mp_context=ctx, initializer=_worker_init, initargs=(threads,)) as pool:
-        futures = {pool.submit(_worker, name, seed, cfg, str(out)): (name, seed) for name, seed in todo}
-        log(f"{len(todo)} runs, {cfg.jobs} at once")
+    with ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init, initargs=(threads,)) as pool:
+        futures = {pool.submit(worker, name, seed, *args): (name, seed) for name, seed in todo}
+        log(f"{len(todo)} runs, {jobs} at once")
         for fut in as_completed(futures):
             name, seed = futures[fut]
             try:
                 row = fut.result()
-            except Exception as e:  # a crashed worker is a row of the table, not the end of it
-                row = _failed(BY_NAME[name], seed, f"{type(e).__name__}: {e}", 0.0)
+            except Exception as e:
+                row = failed(name, seed, f"{type(e).__name__}: {e}")
             finish(row)
-    return rows
 
 
 def _slug(name: str) -> str:
@@ -305,12 +324,16 @@ def markdown(rows: list[dict]) -> str:
         cov = {True: "yes", False: "no"}.get(r.get("interval_covers"), "—")
         L.append(f"| {r['case']} | {r['seed']} | {mark} {r['verdict']} | {', '.join(r['found']) or '—'} | {pe} | "
                  f"{cov} | {err} | {floor} | {ex} | {r['seconds']:.0f} s |")  # fmt: skip
-    s = summary(rows)
-    L += ["", "| goal | reached |", "|---|---|"]
-    for k, v in s.items():
+    return "\n".join(L + goals(rows)) + "\n"
+
+
+def goals(rows: list[dict]) -> list[str]:
+    """The markdown lines of the goals reached (:func:`summary`)."""
+    L = ["", "| goal | reached |", "|---|---|"]
+    for k, v in summary(rows).items():
         if k != "runs":
             L.append(f"| {k.replace('_', ' ')} | {'n/a' if v is None else f'{100 * v:.0f}%'} |")
-    return "\n".join(L) + "\n"
+    return L
 
 
 def rescore(out) -> list[dict]:

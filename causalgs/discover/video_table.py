@@ -31,8 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
+from causalgs.discover import table
 from causalgs.discover.search import DiscoverConfig
-from causalgs.discover.table import BASE, _failed, _slug, excess_removed, score, summary  # noqa: F401
+from causalgs.discover.table import BASE, _failed, _slug, score, summary
 from causalgs.errors import CausalGSError
 from causalgs.io import read_json, write_json, write_text
 
@@ -92,13 +93,7 @@ class VideoTableConfig:
 
 def plan(cfg: VideoTableConfig) -> list[tuple[str, int]]:
     """(case, seed) runs, seed by seed: every case once before any twice."""
-    cases = [c for c in CASES if not cfg.only or c.name in cfg.only or c.kind in cfg.only]
-    counts = {c.name: cfg.control_seeds if c.kind == "control" and cfg.control_seeds is not None else cfg.seeds
-              for c in cases}  # fmt: skip
-    out = []
-    for k in range(max(counts.values(), default=0)):
-        out += [(c.name, cfg.first_seed + k) for c in cases if k < counts[c.name]]
-    return out
+    return table.plan(cfg, CASES)
 
 
 def _generate(*args, **kwargs):
@@ -193,15 +188,6 @@ def run_one(case_name: str, seed: int, cfg: VideoTableConfig, out: Path, log=Non
     return row
 
 
-def _worker_init(threads: int) -> None:
-    import torch
-
-    from causalgs import _ti
-
-    torch.set_num_threads(threads)
-    _ti.init("cpu", "float32", quiet=True)
-
-
 def _worker(case_name: str, seed: int, cfg: VideoTableConfig, out: str) -> dict:
     return run_one(case_name, seed, cfg, Path(out))
 
@@ -214,40 +200,18 @@ def run_video_table(out, cfg: VideoTableConfig | None = None, log=None) -> list[
     log = log or (lambda msg: None)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    done = {}
-    if (out / "table.json").is_file():
-        saved = read_json(out / "table.json", "table")
-        if saved.get("level") != "video":
-            raise CausalGSError(f"{out / 'table.json'} is not a video-level table: choose another --out")
-        done = {(r["case"], r["seed"]): r for r in saved.get("rows", [])}
-    rows = list(done.values())
-    todo = [k for k in plan(cfg) if k not in done]
+    rows, todo = table.pending(out, "video", plan(cfg))
 
     def finish(row: dict) -> None:
         rows.append(row)
         log(f"{row['case']}, seed {row['seed']} -> {row['verdict']} {row['found']}")
         _write(out, rows, cfg)
 
-    if cfg.jobs <= 1:
-        for name, seed in todo:
-            finish(run_one(name, seed, cfg, out, log))
-        return rows
-    import multiprocessing
-    import os
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    def failed(name: str, seed: int, why: str) -> dict:
+        return {**_failed(BY_NAME[name], seed, why, 0.0), "fit_seconds": None}
 
-    threads = max(1, (os.cpu_count() or 1) // cfg.jobs)
-    ctx = multiprocessing.get_context("spawn")  # Taichi's runtime must not be forked
-    with ProcessPoolExecutor(cfg.jobs, mp_context=ctx, initializer=_worker_init, initargs=(threads,)) as pool:
-        futures = {pool.submit(_worker, name, seed, cfg, str(out)): (name, seed) for name, seed in todo}
-        log(f"{len(todo)} runs, {cfg.jobs} at once")
-        for fut in as_completed(futures):
-            name, seed = futures[fut]
-            try:
-                row = fut.result()
-            except Exception as e:  # a crashed worker is a row of the table, not the end of it
-                row = {**_failed(BY_NAME[name], seed, f"{type(e).__name__}: {e}", 0.0), "fit_seconds": None}
-            finish(row)
+    table.execute(todo, cfg.jobs, lambda name, seed: run_one(name, seed, cfg, out, log), _worker, (cfg, str(out)),
+                  failed, finish, log)  # fmt: skip
     return rows
 
 
@@ -272,12 +236,7 @@ def markdown(rows: list[dict]) -> str:
         L.append(f"| {r['case']} | {r['seed']} | {mark} {r['verdict']} | {', '.join(r['found']) or '—'} | {pe} | "
                  f"{cov} | {err} | {db} | {mm(r.get('noise_m'))} | {mm(r.get('tracking_rms_m'))} | {fit_s} | "
                  f"{r['seconds']:.0f} s |")  # fmt: skip
-    s = summary(rows)
-    L += ["", "| goal | reached |", "|---|---|"]
-    for k, v in s.items():
-        if k != "runs":
-            L.append(f"| {k.replace('_', ' ')} | {'n/a' if v is None else f'{100 * v:.0f}%'} |")
-    return "\n".join(L) + "\n"
+    return "\n".join(L + table.goals(rows)) + "\n"
 
 
 def _write(out: Path, rows: list[dict], cfg: VideoTableConfig) -> None:

@@ -133,10 +133,10 @@ def test_a_stopped_fit_resumes_and_other_tables_are_refused(tmp_path, monkeypatc
     assert rows[0]["first_ok"]
     from causalgs.discover.table import TableConfig, run_table
 
-    with pytest.raises(CausalGSError, match="video-level table"):
+    with pytest.raises(CausalGSError, match="a video-level table, not a trajectory-level one"):
         run_table(tmp_path, TableConfig(only=("control: clean",)))
     traj = tmp_path / "traj"
     traj.mkdir()
     (traj / "table.json").write_text(json.dumps({"rows": []}))
-    with pytest.raises(CausalGSError, match="not a video-level table"):
+    with pytest.raises(CausalGSError, match="a trajectory-level table, not a video-level one"):
         V.run_video_table(traj, cfg)
