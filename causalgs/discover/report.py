@@ -155,8 +155,11 @@ def markdown(report: dict) -> str:
                                                f"; {starts} refit start(s) within the profile threshold"))  # fmt: skip
             for r in d.get("runners_up", []):
                 if r["passed"]:
-                    L.append(f"  - also passed, told apart: `{r['effect']}` (ΔBIC {r['delta_bic']:+.1f}, held-out "
-                             f"MSE {r['future_mse_cm2']:.3g} cm²{_gap(r.get('future_gap_cm2'))})")  # fmt: skip
+                    how = {"held-out frames": "told apart on the held-out frames",
+                           "fit window": "as good on the held-out frames, told apart by BIC on the fit window"}
+                    L.append(f"  - also passed, {how.get(r.get('told_apart_by'), 'told apart')}: `{r['effect']}` "
+                             f"(ΔBIC {r['delta_bic']:+.1f}, held-out MSE {r['future_mse_cm2']:.3g} cm²"
+                             f"{_gap(r.get('future_gap_cm2'))})")  # fmt: skip
         L.append("")
     elif report["ambiguous"]:
         L += ["## Ambiguous: the data does not separate these", ""]

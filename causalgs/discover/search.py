@@ -541,6 +541,9 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         rest_sigma = rest_shape_error(st, obs, floor_coord, sigma)
         unc = widen(_uncertainty(st, c.params, cfg, rest_sigma=rest_sigma), st, n_eff)
         scores = {r["effect"]: r for r in entry["refits"] if "error" not in r}
+        # how each other passer was told apart: on the held-out frames, or (tied there) by the fit window's BIC
+        lowest = min(passed, key=lambda t: t[1].future)
+        apart = {p[0].key: "fit window" if _future_close(lowest, p, cfg) else "held-out frames" for p in passed}
         report["discovered"].append({
             "effect": c.key,
             "title": c.title,
@@ -558,7 +561,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
             "runners_up": [{"effect": o.key, "passed": scores[o.key]["passed"],
                             "future_mse_cm2": scores[o.key]["future_mse_cm2"],
                             "delta_bic": scores[o.key]["checks"]["delta_bic"],
-                            "future_gap_cm2": future_gap(st, o_st)}
+                            "future_gap_cm2": future_gap(st, o_st), "told_apart_by": apart.get(o.key)}
                            for o, o_st in refits if o.key != c.key and o.key in scores],
             "base_before": current.model.values(current.fit.theta),
             "base_after": st.model.values(st.fit.theta),

@@ -240,3 +240,23 @@ def test_table_runs_cases_in_parallel_processes(tmp_path):
     assert (tmp_path / "control-clean-s0" / "report.json").is_file()
     assert (tmp_path / "control-clean-s1" / "report.json").is_file()
     assert json.loads((tmp_path / "table.json").read_text())["summary"]["runs"] == 2
+
+
+def test_the_report_says_how_each_other_passer_was_told_apart():
+    from causalgs.discover.report import markdown
+
+    rep = _fake_report("linear_drag", 2.5)
+    d = rep["discovered"][0]
+    d.update(law="linear drag: a = −c·v, c = 2.5 [2.3, 2.7]",
+             evidence={"signature": "v", "signature_share": 0.04, "future_drop": 0.97, "delta_bic": -690.4,
+                       "z": {"linear_drag.c": 30.2}},
+             runners_up=[{"effect": "force", "passed": True, "future_mse_cm2": 0.278, "delta_bic": -760.3,
+                          "future_gap_cm2": [0.06, 0.51], "told_apart_by": "held-out frames"},
+                         {"effect": "quadratic_drag", "passed": True, "future_mse_cm2": 0.0381, "delta_bic": -582.4,
+                          "future_gap_cm2": [-0.08, 0.02], "told_apart_by": "fit window"},
+                         {"effect": "damping", "passed": False, "future_mse_cm2": 0.5, "delta_bic": 3.0}],
+             base_before={"body 0.E": 4e5}, base_after={"body 0.E": 2.6e4})  # fmt: skip
+    text = markdown(rep)
+    assert "also passed, told apart on the held-out frames: `force`" in text
+    assert "also passed, as good on the held-out frames, told apart by BIC on the fit window: `quadratic_drag`" in text
+    assert "damping" not in text
