@@ -230,6 +230,12 @@ def test_gate_statistics():
     assert not judge(train=1.4, best_train=1.0, **near).passed  # 1.18× the best, no floor given
     assert judge(train=1.4, best_train=1.0, noise=1.6, **near).passed  # 1.18× the best, under the floor
     assert not judge(train=2.2, best_train=1.0, noise=1.6, **near).passed  # 1.17× above the floor
+    # ... and a refit that fits the window but misses the held-out frames by over 3× the floor is no discovery
+    far = dict(near, base_future=400.0)
+    assert judge(train=1.0, best_train=1.0, noise=1.6, **dict(far, future=14.0)).passed  # 2.96× the floor
+    missed = judge(train=1.0, best_train=1.0, noise=1.6, **dict(far, future=15.0))  # 3.06×
+    assert not missed.passed and missed.reasons == ["the refit misses the held-out frames by 3.1× the noise floor "
+                                                    "(it fits the window, not the law)"]  # fmt: skip
     no_future = judge(base_train=4.0, base_future=9.0, train=1.0, future=8.5, best_train=1.0, k_new=1, n_eff=300,
                       k_base=8, z={"c": 8.0}, cfg=cfg)  # fmt: skip
     assert not no_future.passed
