@@ -8,7 +8,8 @@ A refit candidate is accepted only if all of these hold (``../shared/DISCOVERY.m
    addition);
 3. every new parameter is at least ``sigmas`` (3) standard errors from its "off" value, the standard errors from a
    moving-block bootstrap over frames of the linearised refit (naive Gauss–Newton errors assume independent
-   residuals and come out far too small);
+   residuals and come out far too small), and none is held at a bound of its range (there the linearised error
+   collapses to nothing: a viscosity pinned at its cap read as 10¹⁵ standard errors from zero);
 4. the refit reaches the floor: its fit-window RMS is below the base's, within ``floor_factor`` (1.1×) of the best
    any model reached on this data or of the noise floor measured from the data, whichever is larger
    (:func:`causalgs.discover.residuals.rigid_floor`; below the noise, a better fit of the window is fitting the
@@ -80,10 +81,10 @@ class Verdict:
 
 def judge(*, base_train: float, base_future: float, train: float, future: float, best_train: float,
           k_new: int, n_eff: int, k_base: int, z: dict, cfg: GateConfig,
-          noise: float | None = None) -> Verdict:  # fmt: skip
+          noise: float | None = None, pinned: dict | None = None) -> Verdict:  # fmt: skip
     """Apply the checks of the module docstring. ``*_train``/``*_future``: mean squared errors (one unit);
     ``z``: new parameter → |value − off| / standard error; ``noise``: the noise floor as a mean squared error in
-    the same unit (None: not checked)."""
+    the same unit (None: not checked); ``pinned``: new parameter → "upper"/"lower", those held at a bound."""
     drop = 1.0 - future / max(base_future, 1e-300)
     d_bic = bic(train, n_eff, k_base + k_new) - bic(base_train, n_eff, k_base)
     reached = max(best_train, noise) if noise is not None else best_train
@@ -107,7 +108,10 @@ def judge(*, base_train: float, base_future: float, train: float, future: float,
         reasons.append(f"held-out error drops {100 * drop:.0f}% (< {100 * cfg.future_drop:.0f}%)")
     if d_bic >= 0:
         reasons.append(f"BIC does not improve (Δ = {d_bic:+.1f})")
-    weak = [p for p, v in z.items() if not v >= cfg.sigmas]
+    pinned = pinned or {}
+    for p, side in pinned.items():
+        reasons.append(f"{p} is held at the {side} bound of its range: the data asks for more than the model allows")
+    weak = [p for p, v in z.items() if not v >= cfg.sigmas and p not in pinned]
     if weak:
         reasons.append(f"not significant: {', '.join(f'{p} ({z[p]:.1f} SE)' for p in weak)}")
     if not floor_ok:

@@ -36,6 +36,7 @@ from causalgs.sim.autograd import simulate
 from causalgs.sim.effects import REGISTRY, Effects
 
 CAPACITY, SEGMENT = 8192, 16  # the fitted model's store (causalgs.model.config.PhysicsConfig): one set of kernels
+PINNED = 1e-3  # a bounded parameter whose sigmoid is this close to 0 or 1 is held at its bound
 SUBSTEP_COST = 2.0  # a learned effect parameter may shorten the substep this many times below the elastic one
 
 
@@ -159,6 +160,22 @@ class PhysicsModel:
         if name not in self.names:
             raise CausalGSError(f"'{name}' is not a parameter of the model ({', '.join(self.names)})")
         return self.names.index(name)
+
+    def pinned(self, theta: torch.Tensor, names) -> dict[str, str]:
+        """The bounded effect parameters among ``names`` that ``theta`` holds at a bound ("upper" or "lower": the
+        sigmoid within :data:`PINNED` of 0 or 1). There the rollout no longer moves with the parameter, so its
+        linearised standard error collapses to nothing and says nothing: the data asks for more than the model
+        allows."""
+        out = {}
+        for name in names:
+            k = self.knobs[self.index(name)]
+            if k.kind == "effect" and k.lower is not None and k.upper is not None:
+                s = float(torch.sigmoid(torch.as_tensor(theta[self.index(name)], dtype=torch.float64)))
+                if s > 1 - PINNED:
+                    out[name] = "upper"
+                elif s < PINNED:
+                    out[name] = "lower"
+        return out
 
     def base_indices(self) -> list[int]:
         """Entries of θ that are per-body (materials and initial velocities)."""

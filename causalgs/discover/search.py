@@ -506,7 +506,8 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
             v = judge(base_train=current.train, base_future=current.future, train=st.train, future=st.future,
                       best_train=best_train, k_new=len(c.params), n_eff=n_eff,
                       k_base=len(current.model.knobs), z=z, cfg=cfg.gate,
-                      noise=(floor_coord / UNIT) ** 2)  # fmt: skip
+                      noise=(floor_coord / UNIT) ** 2,
+                      pinned=st.model.pinned(st.fit.theta, c.params))  # fmt: skip
             res = {"effect": c.key, "train_mse_cm2": st.train, "future_mse_cm2": st.future, "passed": v.passed,
                    "checks": v.checks, "reasons": v.reasons, "params": _public(unc),
                    "values": st.model.values(st.fit.theta)}  # fmt: skip

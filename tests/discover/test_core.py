@@ -101,6 +101,15 @@ def test_a_viscosity_is_bounded_where_its_substep_would_outrun_the_elastic_one()
         assert math.isclose(float(k.value(torch.tensor(k.internal(v), dtype=torch.float64))), v, rel_tol=1e-6)
     assert float(k.value(torch.tensor(40.0, dtype=torch.float64))) <= k.upper
     assert m.knobs[m.index("gravity.g[2]")].upper is None  # gravity does not shorten the substep
+    # A viscosity held at the bound is found so (the refit on a video-level landing stopped at θ = 49.1).
+    th = m.initial(E=3e4)
+    i = m.index("damping.eta")
+    th[i] = k.internal(0.5 * k.upper)
+    assert m.pinned(th, ["damping.eta", "gravity.g[2]"]) == {}
+    th[i] = 49.1
+    assert m.pinned(th, ["damping.eta"]) == {"damping.eta": "upper"}
+    th[i] = -8.0
+    assert m.pinned(th, ["damping.eta"]) == {"damping.eta": "lower"}
 
 
 def test_stray_particles_are_the_small_groups_apart_from_every_body():
@@ -230,6 +239,10 @@ def test_gate_statistics():
     assert not judge(train=1.4, best_train=1.0, **near).passed  # 1.18× the best, no floor given
     assert judge(train=1.4, best_train=1.0, noise=1.6, **near).passed  # 1.18× the best, under the floor
     assert not judge(train=2.2, best_train=1.0, noise=1.6, **near).passed  # 1.17× above the floor
+    # ... a parameter held at a bound of its range is no measurement, however many standard errors it reads
+    held = judge(train=1.0, best_train=1.0, noise=1.6, pinned={"c": "upper"}, **dict(near, z={"c": 4e15}))
+    assert not held.passed and held.reasons == ["c is held at the upper bound of its range: the data asks for more "
+                                                "than the model allows"]  # fmt: skip
     # ... and a refit that fits the window but misses the held-out frames by over 3× the floor is no discovery
     far = dict(near, base_future=400.0)
     assert judge(train=1.0, best_train=1.0, noise=1.6, **dict(far, future=14.0)).passed  # 2.96× the floor
