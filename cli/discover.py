@@ -73,7 +73,9 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     several stiffnesses; the disagreement is mapped by frame, body and contact state; every candidate of the
     catalogue is screened with one sensitivity rollout; the best are refitted jointly with the base through the
     differentiable MPM; a gate accepts one only if the held-out error drops, BIC (with an effective sample size)
-    improves, its parameters are significant (block bootstrap) and the refit reaches the floor.
+    improves, its parameters are significant (block bootstrap) and inside their ranges, and the refit reaches the
+    noise floor on the fit window and stays within 3x of it on the held-out frames. Among passers, the held-out
+    frames choose first and BIC among those they do not tell apart.
 
     \b
     Verdicts: the named effect(s) with their law and interval; "ambiguous" (the data does not separate two
