@@ -112,7 +112,7 @@ def _discover(*args, **kwargs) -> tuple[dict, object]:
     """(report, the run's observation) of ``causalgs discover`` on a run."""
     from causalgs.discover.run import load_source, run_discovery
 
-    obs, _ = load_source(args[0])  # kept in memory for the discovery itself (one load per run)
+    obs, _ = load_source(args[0])  # the run's model and images are loaded once for both (causalgs.discover.video)
     return run_discovery(*args, **kwargs), obs
 
 
