@@ -41,16 +41,17 @@ def load_source(source) -> tuple[Observation, dict]:
 
 def run_discovery(source, out, *, spec: str | None = None, learn=None, candidates=None,
                   config: DiscoverConfig | None = None, log=None, obs: Observation | None = None,
-                  resume: bool = False) -> dict:  # fmt: skip
+                  base: dict | None = None, resume: bool = False) -> dict:  # fmt: skip
     """Discover on ``source`` (or the given ``obs``) with the base model ``spec``/``learn`` (None: the run's own
-    physics for a run folder, else :data:`DEFAULT_SPEC` / :data:`DEFAULT_LEARN`); writes ``report.json``,
+    physics for a run folder, else :data:`DEFAULT_SPEC` / :data:`DEFAULT_LEARN`; ``obs`` with ``base``: what
+    :func:`load_source` returned for ``source``, already loaded); writes ``report.json``,
     ``report.md``, the plots, ``discover.json`` (the options) and ``progress.json`` (the finished calibrations)
     into ``out`` and returns the report. An ``out`` that already holds a discovery run is an error unless
     ``resume``, which continues it (same options and measurement) from its finished calibrations."""
     cfg = config or DiscoverConfig()
     if spec is not None:
         Effects.from_spec(spec)  # a malformed spec is a one-line error before any work
-    base: dict = {}
+    base = dict(base or {})
     if obs is None:
         obs, base = load_source(source)
     spec = spec if spec is not None else base.get("spec", DEFAULT_SPEC)

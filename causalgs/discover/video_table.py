@@ -112,8 +112,8 @@ def _discover(*args, **kwargs) -> tuple[dict, object]:
     """(report, the run's observation) of ``causalgs discover`` on a run."""
     from causalgs.discover.run import load_source, run_discovery
 
-    obs, _ = load_source(args[0])  # the run's model and images are loaded once for both (causalgs.discover.video)
-    return run_discovery(*args, **kwargs), obs
+    obs, base = load_source(args[0])  # read once, for discovery and for the table's tracking error
+    return run_discovery(*args, obs=obs, base=base, **kwargs), obs
 
 
 def _synth(case: VideoCase, seed: int, cfg: VideoTableConfig, data: Path, log) -> None:
