@@ -58,18 +58,24 @@ def _starts(text: str) -> tuple[float, ...]:
               help="Starting stiffnesses (Pa) of the base calibration, comma-separated.")
 @click.option("--iterations", type=click.IntRange(1, 500), default=25, show_default=True,
               help="Most Levenberg–Marquardt iterations per calibration (it stops when converged).")
+@click.option("--tracking", type=click.Choice(["refined", "kinematic"]), default="refined", show_default=True,
+              help="For a run: the measured motion. 'refined': the run's tracked motion corrected frame by frame to "
+                   "that frame's images (one rigid correction per motion pattern; kept in RUN/tracks.npz, a few "
+                   "seconds a frame); 'kinematic': the run's velocity field as fitted, which smooths impacts.")
 @precision_option
 @click.option("--resume", is_flag=True,
               help="Continue the discovery run in --out (stopped, or to redo its outputs) from the calibrations it "
                    "finished (progress.json); the options must be the same.")  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print report.json to stdout.")
-def discover(source, out, spec, learn, candidates, max_effects, res, starts, iterations, precision, resume, as_json):
+def discover(source, out, spec, learn, candidates, max_effects, res, starts, iterations, tracking, precision, resume,
+             as_json):  # fmt: skip
     """Find where simulation and measurement disagree, name the missing physical effect, add it, show the gap shrink.
 
     SOURCE is a fitted run folder (`causalgs fit`: the measurement is the tracked motion of its particles over the
-    observed window, bodies from its motion segmentation, the last quarter held out; the base model is the run's
-    physics) or an observation file (.npz: measured trajectories of material points and how many leading frames may
-    be fitted; the rest are held out and only scored). The model (--effects) is calibrated on the fit window from
+    observed window, refined frame by frame to the images (--tracking), bodies from its motion segmentation, the
+    last quarter held out; the base model is the run's physics) or an observation file (.npz: measured
+    trajectories of material points and how many leading frames may be fitted; the rest are held out and only
+    scored). The model (--effects) is calibrated on the fit window from
     several stiffnesses; the disagreement is mapped by frame, body and contact state; every candidate of the
     catalogue is screened with one sensitivity rollout; the best are refitted jointly with the base through the
     differentiable MPM; a gate accepts one only if the held-out error drops, BIC (with an effective sample size)
@@ -98,8 +104,20 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
         select(cands)  # unknown names: one line, before any work
     cfg = DiscoverConfig(res=res, starts=_starts(starts), iterations=iterations, max_effects=max_effects)
     _ti.init("cpu", precision, quiet=True)
-    report = run_discovery(source, out, spec=spec, learn=_names(learn, "--learn"), candidates=cands,
-                           config=cfg, log=None if as_json else _console_log(), resume=resume)  # fmt: skip
+    from causalgs.progress import progress_bar
+
+    with progress_bar(not as_json) as bar:
+        task = None
+
+        def refining(done: int, total: int) -> None:
+            nonlocal task
+            if task is None:
+                task = bar.add_task("refining the tracked motion", total=total)
+            bar.update(task, completed=done)
+
+        report = run_discovery(source, out, spec=spec, learn=_names(learn, "--learn"), candidates=cands,
+                               config=cfg, log=None if as_json else _console_log(), resume=resume,
+                               refine=tracking == "refined", progress=refining)  # fmt: skip
     if as_json:
         from causalgs.discover.report import finite
 

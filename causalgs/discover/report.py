@@ -210,10 +210,18 @@ def markdown(report: dict) -> str:
                  + ", ".join(f"`{k}` {_pct(v)}" for k, v in sorted(sig.items(), key=lambda kv: -kv[1])))  # fmt: skip
     L.append("")
     if tr:
-        L += ["## The measurement", "",
-              f"The measured motion is the run's tracked motion (its kinematic fit). Rendered at {tr['views']} "
-              f"training cameras it matches the images at a median PSNR of {tr['median']:.1f} dB over the "
-              f"{len(tr['frames'])} observed frames."]  # fmt: skip
+        if tr.get("refined"):
+            L += ["## The measurement", "",
+                  "The measured motion is the run's tracked motion (its kinematic fit), refined frame by frame to "
+                  f"that frame's images (`tracks.npz` in the run). On {tr['views']} {tr['cameras']} camera(s) per "
+                  f"frame it matches the images at a median PSNR of {tr['median']:.1f} dB over the "
+                  f"{len(tr['frames'])} observed frames (the kinematic fit alone: {tr['median_kinematic']:.1f} dB; "
+                  f"worst frame {min(tr['psnr']):.1f} dB against {min(tr['psnr_kinematic']):.1f})."]  # fmt: skip
+        else:
+            L += ["## The measurement", "",
+                  f"The measured motion is the run's tracked motion (its kinematic fit). Rendered at {tr['views']} "
+                  f"training cameras it matches the images at a median PSNR of {tr['median']:.1f} dB over the "
+                  f"{len(tr['frames'])} observed frames."]  # fmt: skip
         if tr.get("pixel_m"):
             L.append(f"A pixel spans {_mm(tr['pixel_m'])} at the bodies; the noise credited to the measurement, "
                      f"{_mm(report['noise'])} per coordinate, is at least a quarter of it (tracking errs smoothly "
@@ -222,9 +230,11 @@ def markdown(report: dict) -> str:
             L.append(f"{tr['stray_particles']} stray particle(s), apart from every body, were left out.")
         if tr["poor"]:
             worst = min(tr["psnr"])
+            hint = "; a longer kinematic fit (`--set kinematic.iterations=…`) tracks better"
+            hint = "" if tr.get("refined") else hint
             L.append(f"It loses them (more than {tr['drop_db']:.0f} dB below the median, down to {worst:.1f} dB) at "
                      f"frames {_ranges(tr['poor'])}: a disagreement there may be the tracking's, not the "
-                     "physics'; a longer kinematic fit (`--set kinematic.iterations=…`) tracks better.")  # fmt: skip
+                     f"physics'{hint}.")  # fmt: skip
         else:
             L.append("No frame falls more than "
                      f"{tr['drop_db']:.0f} dB below it: the disagreement above is the physics'.")  # fmt: skip

@@ -24,27 +24,30 @@ DEFAULT_SPEC = "gravity;ground:mu=0.3;walls"
 DEFAULT_LEARN = ("ground.mu",)
 
 
-def load_source(source) -> tuple[Observation, dict]:
+def load_source(source, *, refine: bool = True, progress=None) -> tuple[Observation, dict]:
     """The observation at ``source`` and the base model it implies: an ``.npz`` observation file (no base: the
-    defaults), or a fitted run folder (:func:`causalgs.discover.video.observation_from_run`: the run's physics).
+    defaults), or a fitted run folder (:func:`causalgs.discover.video.observation_from_run`: the run's physics; its
+    tracked motion refined frame by frame unless ``refine`` is False, ``progress(done, total)`` following it).
     Anything else is a one-line error."""
     source = Path(source)
     if source.is_dir():
         if not (source / "config.toml").is_file() or not (source / "checkpoint.pt").is_file():
             raise CausalGSError(f"{source}: a folder but not a fitted run (no config.toml / checkpoint.pt); give a "
                                 "run folder or an observation file (.npz)")  # fmt: skip
-        from causalgs.discover.video import observation_from_run
+        from causalgs.discover.video import REFINE, observation_from_run
 
-        return observation_from_run(source)
+        return observation_from_run(source, refine=REFINE if refine else None, progress=progress)
     return load_observation(source), {}
 
 
 def run_discovery(source, out, *, spec: str | None = None, learn=None, candidates=None,
                   config: DiscoverConfig | None = None, log=None, obs: Observation | None = None,
-                  base: dict | None = None, resume: bool = False) -> dict:  # fmt: skip
+                  base: dict | None = None, resume: bool = False, refine: bool = True,
+                  progress=None) -> dict:  # fmt: skip
     """Discover on ``source`` (or the given ``obs``) with the base model ``spec``/``learn`` (None: the run's own
     physics for a run folder, else :data:`DEFAULT_SPEC` / :data:`DEFAULT_LEARN`; ``obs`` with ``base``: what
-    :func:`load_source` returned for ``source``, already loaded); writes ``report.json``,
+    :func:`load_source` returned for ``source``, already loaded; ``refine`` and ``progress`` as there); writes
+    ``report.json``,
     ``report.md``, the plots, ``discover.json`` (the options) and ``progress.json`` (the finished calibrations)
     into ``out`` and returns the report. An ``out`` that already holds a discovery run is an error unless
     ``resume``, which continues it (same options and measurement) from its finished calibrations."""
@@ -53,7 +56,7 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
         Effects.from_spec(spec)  # a malformed spec is a one-line error before any work
     base = dict(base or {})
     if obs is None:
-        obs, base = load_source(source)
+        obs, base = load_source(source, refine=refine, progress=progress)
     spec = spec if spec is not None else base.get("spec", DEFAULT_SPEC)
     learn = tuple(learn) if learn is not None else tuple(base.get("learn", DEFAULT_LEARN))
     if cfg.res <= 0:  # the run's grid, else the default
@@ -61,6 +64,8 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
     out = Path(out)
     options = {"source": str(source), "spec": spec, "learn": list(learn),
                "candidates": None if candidates is None else list(candidates),
+               "tracking": ("refined" if base.get("tracking", {}).get("refined") else "kinematic") if "run" in base
+               else None,
                "config": dataclasses.asdict(cfg)}  # fmt: skip
     if (out / "report.json").is_file() and not (out / "progress.json").is_file() and not resume:
         raise CausalGSError(f"{out} already holds a discovery report: choose another --out")
@@ -68,8 +73,8 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
                       resume=resume)  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "discover.json", options)
-    tracking = None
-    if "run" in base:  # how well the measurement (the run's tracked motion) matches its own images, per frame
+    tracking = base.get("tracking")  # refined tracks come scored on held-out cameras
+    if "run" in base and tracking is None:  # how well the run's tracked motion matches its own images, per frame
         from causalgs.discover.video import tracking_quality
 
         if log:

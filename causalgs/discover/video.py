@@ -29,6 +29,9 @@ import torch
 
 from causalgs.discover.observation import Observation, noise_floor
 from causalgs.errors import CausalGSError
+from causalgs.model.refine import RefineConfig
+
+REFINE = RefineConfig()  # the measurement: the kinematic fit refined frame by frame (causalgs.model.refine)
 
 _LOADED: dict = {}  # the last run loaded, by folder and checkpoint state: one discovery reads its run once
 
@@ -50,8 +53,12 @@ def _load(run_dir):
 
 
 def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = 600, min_share: float = 0.05,
-                         seed: int = 0) -> tuple[Observation, dict]:  # fmt: skip
-    """The observation described in the module docstring and the run's base model: ``{"spec", "learn", "res"}``."""
+                         seed: int = 0, refine: RefineConfig | None = REFINE,
+                         progress=None) -> tuple[Observation, dict]:  # fmt: skip
+    """The observation described in the module docstring and the run's base model: ``{"spec", "learn", "res"}``,
+    with ``"tracking"`` (:func:`refined_quality`) where the motion was refined (``refine``; None measures the
+    kinematic fit as it is). ``progress(done, total)`` follows the refinement, frame by frame."""
+    from causalgs.model.refine import cached_tracks
     from causalgs.sim.effects import Effects
 
     run_dir = Path(run_dir)
@@ -65,9 +72,13 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = 6
         raise CausalGSError(f"held_out = {held_out} must be in (0, 0.6)")
     p = model.particles
     x0 = p.x0.to(model.fields.centres.dtype)
+    tracks = None if refine is None else cached_tracks(run_dir, model, data, tl, refine, progress)
     with torch.no_grad():
         h = model.mixtures(x0)
-        xs, _ = model.trajectories(h, x0, None, n - 1, list(range(n)))
+        if tracks is None:
+            xs, _ = model.trajectories(h, x0, None, n - 1, list(range(n)))
+        else:
+            xs = tracks.positions(h.double(), x0.double())
     x = xs.double().numpy()
     h = h.double().numpy()
     body = _bodies(h, min_share)
@@ -101,8 +112,11 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = 6
                       density=rho, ground=ground, names=[f"body {b}" for b in range(int(body.max()) + 1)])  # fmt: skip
     pixel = pixel_footprint(data.train, x[0].mean(0))
     obs.noise = max(noise_floor(obs), RESOLVE * pixel)
-    return obs, {"spec": eff.spec(), "learn": tuple(cfg.learn), "res": int(cfg.res), "run": str(run_dir),
-                 "stray": int(stray.sum()), "pixel_m": pixel}  # fmt: skip
+    base = {"spec": eff.spec(), "learn": tuple(cfg.learn), "res": int(cfg.res), "run": str(run_dir),
+            "stray": int(stray.sum()), "pixel_m": pixel}  # fmt: skip
+    if tracks is not None:
+        base["tracking"] = refined_quality(tracks)
+    return obs, base
 
 
 def image_residuals(run_dir, obs: Observation, traj: dict, out_png, *, views: int = 4) -> dict | None:
@@ -176,6 +190,20 @@ def stray_particles(x: np.ndarray, cell: float, share: float = STRAY_SHARE) -> n
 
 
 TRACKING_DROP_DB = 3.0  # a frame this far below the median PSNR of the tracked motion has lost the images
+
+
+def refined_quality(tracks, drop_db: float = TRACKING_DROP_DB) -> dict:
+    """:func:`tracking_quality`'s answer for refined tracks (:class:`~causalgs.model.refine.Tracks`), from the PSNR
+    the refinement measured on each frame's held-out cameras: ``psnr`` the refined motion's, ``psnr_kinematic`` the
+    kinematic fit's, ``refined`` True."""
+    ok = np.isfinite(tracks.psnr_after)
+    frames = [int(k) for k in np.nonzero(ok)[0]]
+    scores = [float(v) for v in tracks.psnr_after[ok]]
+    med = float(np.median(scores)) if scores else float("nan")
+    return {"frames": frames, "psnr": scores, "psnr_kinematic": [float(v) for v in tracks.psnr_before[ok]],
+            "median": med, "median_kinematic": float(np.median(tracks.psnr_before[ok])) if scores else float("nan"),
+            "poor": [k for k, v in zip(frames, scores, strict=True) if v < med - drop_db], "drop_db": drop_db,
+            "views": REFINE.score_views, "cameras": tracks.scored_on, "refined": True}  # fmt: skip
 
 
 def pixel_footprint(frames, point: np.ndarray) -> float:

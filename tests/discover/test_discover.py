@@ -260,3 +260,22 @@ def test_the_report_says_how_each_other_passer_was_told_apart():
     assert "also passed, told apart on the held-out frames: `force`" in text
     assert "also passed, as good on the held-out frames, told apart by BIC on the fit window: `quadratic_drag`" in text
     assert "damping" not in text
+
+
+def test_the_report_says_the_measurement_was_refined_and_what_it_gained():
+    from causalgs.discover.report import markdown
+    from causalgs.discover.video import refined_quality
+    from causalgs.model.refine import Tracks
+
+    before = np.array([30.0, 29.0, 28.5, 22.0, 21.0, 27.0])
+    after = np.array([30.0, 31.0, 31.5, 30.5, 26.0, 31.0])
+    eye = np.tile(np.eye(3), (6, 2, 1, 1))
+    tr = refined_quality(Tracks(eye, np.zeros((6, 2, 3)), before, after, "val", "k"))
+    assert tr["median"] == pytest.approx(30.75) and tr["median_kinematic"] == pytest.approx(27.75)
+    assert tr["poor"] == [4] and tr["frames"] == list(range(6)) and tr["cameras"] == "val"
+    rep = _fake_report(None)
+    rep["tracking"] = {**tr, "pixel_m": 0.0046, "stray_particles": 0}
+    text = markdown(rep)
+    assert "refined frame by frame" in text and "median PSNR of 30.8 dB" in text and "alone: 27.8 dB" in text
+    assert "worst frame 26.0 dB against 21.0" in text and "frames 4: a disagreement there" in text
+    assert "longer kinematic fit" not in text  # that advice is for the kinematic fit's own tracks

@@ -445,7 +445,7 @@ def test_discovery_reads_a_fitted_run(fitted, tmp_path):
     from causalgs.model.fit import load_model
     from cli.main import cli
 
-    obs, base = observation_from_run(fitted)
+    obs, base = observation_from_run(fitted, refine=None)  # the kinematic fit as it is (refined: below)
     m, _, tl = load_model(fitted)
     n = tl.train_frames
     with torch.no_grad():
@@ -465,7 +465,7 @@ def test_discovery_reads_a_fitted_run(fitted, tmp_path):
     depth = (cam.viewmat @ np.append(obs.x[0].mean(0), 1.0))[2]
     assert 0.5 < base["pixel_m"] / (depth / cam.K[0, 0]) < 2.0 and obs.noise >= RESOLVE * base["pixel_m"] - 1e-12
     assert f"d={float(m.effect_params[m.simulator().effects.param_names().index('ground.d')])!r}" in base["spec"]
-    small, _ = observation_from_run(fitted, max_points=50)
+    small, _ = observation_from_run(fitted, max_points=50, refine=None)
     assert small.points < obs.points and np.isclose(small.vol.sum(), obs.vol.sum(), rtol=1e-6)
     out = tmp_path / "discover"
     r = CliRunner().invoke(cli, ["discover", str(fitted), "--out", str(out), "--candidates", "force",
@@ -484,8 +484,9 @@ def test_discovery_reads_a_fitted_run(fitted, tmp_path):
     from causalgs.metrics.pixel import psnr
     from causalgs.model.fit import load_model as load
 
-    tr = rep["tracking"]
-    assert tr["frames"] == list(range(n)) and all(np.isfinite(tr["psnr"]))
+    tr = rep["tracking"]  # the CLI measures the refined motion, scored by the refinement on its cameras
+    assert tr["refined"] and tr["frames"] == list(range(n)) and all(np.isfinite(tr["psnr"]))
+    assert len(tr["psnr_kinematic"]) == n and tr["psnr"][0] == tr["psnr_kinematic"][0]
     model, data, tl2 = load(fitted)
     first = min(f.view for f in data.train)
     fr = next(f for f in data.train if tl2.index(f) == n - 1 and f.view == first)
@@ -590,3 +591,106 @@ def test_the_stiffness_calibration_keeps_the_best_replaying_factor(fitted):
     d["physics"]["calibrate"] = [0.5, 0.0]
     with pytest.raises(CausalGSError, match="physics.calibrate"):
         from_dict(FitConfig, d)
+
+
+def test_refined_tracks_place_points_by_their_patterns_motion():
+    """The refinement's algebra against plain references: a rigid correction about a centroid, the blended position
+    and its Jacobian (autodiff), and a float64 finite-difference check of the correction's gradient."""
+    from causalgs.model.refine import corrected, jacobian, place
+
+    g = torch.Generator().manual_seed(0)
+    K, N = 3, 7
+    A = torch.linalg.matrix_exp(torch.linalg.cross(torch.eye(3, dtype=torch.float64)[None],
+                                                   torch.randn(K, 1, 3, generator=g, dtype=torch.float64)))  # fmt: skip
+    b, c = torch.randn(K, 3, generator=g, dtype=torch.float64), torch.randn(K, 3, generator=g, dtype=torch.float64)
+    h = torch.softmax(torch.randn(N, K, generator=g, dtype=torch.float64), -1)
+    x0 = torch.randn(N, 3, generator=g, dtype=torch.float64)
+    zero = torch.zeros(K, 3, dtype=torch.float64)
+    A0, b0 = corrected(A, b, c, zero, zero)
+    assert torch.allclose(A0, A) and torch.allclose(b0, b)
+    r, d = torch.tensor([[0.0, 0.0, 0.3]] * K, dtype=torch.float64), torch.full((K, 3), 0.01, dtype=torch.float64)
+    A1, b1 = corrected(A, b, c, r, d)
+    y = torch.einsum("kij,nj->nki", A, x0) + b  # every point moved by every pattern, before the correction
+    co, si = np.cos(0.3), np.sin(0.3)
+    Q = torch.tensor([[co, -si, 0.0], [si, co, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    ref = torch.einsum("ij,nkj->nki", Q, y - c) + c + d  # rotated about each pattern's centroid, then shifted
+    assert torch.allclose(torch.einsum("kij,nj->nki", A1, x0) + b1, ref, atol=1e-12)
+    assert torch.allclose(place(h, x0, A1, b1), (h[..., None] * ref).sum(1), atol=1e-12)
+    J = torch.autograd.functional.jacobian(lambda x: place(h, x, A1, b1).sum(0), x0)  # [3, N, 3]: rows of ∂x_n/∂x0_n
+    assert torch.allclose(J.permute(1, 0, 2), jacobian(h, A1), atol=1e-12)
+    r.requires_grad_(True)
+    d.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda r_, d_: place(h, x0, *corrected(A, b, c, r_, d_)), (r, d))
+
+
+def test_refinement_finds_a_displacement_the_velocity_field_missed(fitted, tmp_path):
+    """Images of the last observed frame with the moving Gaussians shifted 3 cm (and the other frames as they are):
+    the refinement moves that frame's patterns by the shift, scores it better on its cameras, keeps the result in the
+    run folder for the same fit and settings, and the discovery's measurement is the refined motion."""
+    import dataclasses
+    import shutil
+    import types
+
+    from causalgs.discover.video import observation_from_run, refined_quality
+    from causalgs.model.fit import load_model
+    from causalgs.model.refine import RefineConfig, cached_tracks, refine_tracks
+
+    run = tmp_path / "run"
+    shutil.copytree(fitted, run)
+    m, data, tl = load_model(run)
+    n = tl.train_frames
+    shift = torch.tensor([0.03, 0.0, -0.02])
+    bg = tuple(float(v) for v in data.background)
+    idx = torch.nonzero(m.dynamic).flatten()
+
+    def moved(frames, k):
+        out = []
+        for fr in frames:
+            if tl.index(fr) != k:
+                out.append(fr)
+                continue
+            means, quats = m.kinematic(k, frames=[k])
+            means = means[0].detach().clone()
+            means[idx] += shift.to(means.dtype)
+            with torch.no_grad():
+                img, _, _ = m.gaussians.render(fr.camera, bg, means=means, quats=quats[0].detach())
+            rgb = (255 * img.clamp(0, 1).numpy() + 0.5).astype(np.uint8)
+            out.append(dataclasses.replace(fr, rgba=rgb))
+        return out
+
+    shifted = types.SimpleNamespace(train=moved(data.train, n - 1), val=moved(data.val, n - 1),
+                                    background=data.background)  # fmt: skip
+    cfg = RefineConfig(iterations=60, views=2, lr_shift=2e-3)
+    tr = refine_tracks(m, shifted, tl, cfg)
+    assert tr.A.shape == (n, m.config.fields.patterns, 3, 3) and tr.b.shape == (n, m.config.fields.patterns, 3)
+    with torch.no_grad():
+        x0 = m.gaussians.means[idx].detach()
+        h = m.mixtures(x0)
+        base = m.trajectories(h, x0, None, n - 1, [n - 1])[0][0].double()
+    got = (tr.positions(h.double(), x0.double(), [n - 1])[0] - base).mean(0)
+    assert torch.allclose(got, shift.double(), atol=0.01), got  # within a centimetre of the 3 cm shift
+    assert tr.psnr_after[-1] > tr.psnr_before[-1] + 1.0
+    assert np.allclose(tr.A[0], np.eye(3)) and np.allclose(tr.b[0], 0.0) and tr.psnr_after[0] == tr.psnr_before[0]
+    # Kept in the run folder: the same fit and settings read it back; other settings make it again.
+    quick = RefineConfig(iterations=2, views=1)
+    first = cached_tracks(run, m, data, tl, quick)
+    assert (run / "tracks.npz").is_file()
+    again = cached_tracks(run, m, data, tl, quick, progress=lambda *a: pytest.fail("refined again"))
+    assert np.array_equal(first.b, again.b) and again.key == first.key
+    # The discovery's measurement: the refined positions of the simulated particles (None: the kinematic fit's).
+    from scipy.spatial import cKDTree
+
+    obs, base_model = observation_from_run(run, refine=quick, progress=lambda *a: pytest.fail("refined again"))
+    plain, plain_model = observation_from_run(run, refine=None)
+    x0p = m.particles.x0.to(m.fields.centres.dtype)
+    with torch.no_grad():
+        want = quick_positions = first.positions(m.mixtures(x0p).double(), x0p.double()).numpy()
+    assert obs.x.shape == plain.x.shape and np.allclose(obs.x[0], plain.x[0])  # the same particles, from frame 0
+    for k in (1, n - 1):
+        dist, _ = cKDTree(quick_positions[k]).query(obs.x[k])
+        assert dist.max() < 1e-6  # every measured point is a refined particle position
+    assert not np.allclose(obs.x[-1], plain.x[-1], atol=1e-6) and want.shape[0] == n
+    assert base_model["tracking"] == refined_quality(first) and "tracking" not in plain_model
+    calls = []
+    other = cached_tracks(run, m, data, tl, RefineConfig(iterations=3, views=1), progress=lambda *a: calls.append(a))
+    assert other.key != first.key and calls[-1] == (n, n)
