@@ -79,12 +79,12 @@ def _recorders(monkeypatch, calls, *, fail=()):
                "error_before": {"future_rms_m": 0.012}, "error_after": {"future_rms_m": 0.001 if found else 0.012},
                "floor_rms_m": 0.0012, "seconds": 300.0, "noise": 0.0011,
                "images": {"psnr_before": 25.0, "psnr_after": 32.5}}  # fmt: skip
-        return rep, SimpleNamespace(x=np.zeros((3, 2, 3)))
+        return rep, SimpleNamespace(x=np.zeros((3, 2, 3))), SimpleNamespace(x=np.ones((3, 2, 3)))
 
     monkeypatch.setattr(V, "_generate", generate)
     monkeypatch.setattr(V, "_run_fit", fit)
     monkeypatch.setattr(V, "_discover", discover)
-    monkeypatch.setattr(V, "tracking_error", lambda obs, data: 0.0015)
+    monkeypatch.setattr(V, "tracking_error", lambda obs, data: 0.0015 if obs.x.sum() == 0 else 0.008)
 
 
 def test_the_table_resumes_each_stage_and_records_failures(tmp_path, monkeypatch):
@@ -98,6 +98,7 @@ def test_the_table_resumes_each_stage_and_records_failures(tmp_path, monkeypatch
     drag = by["linear_drag"]
     assert drag["first_ok"] and drag["param_error"] == pytest.approx(0.05) and drag["interval_covers"]
     assert drag["fit_seconds"] == 700.0 and drag["tracking_rms_m"] == 0.0015 and drag["psnr_after"] == 32.5
+    assert drag["tracking_kinematic_rms_m"] == 0.008  # the measurement without the per-frame refinement
     assert by["outside: attractor"]["verdict"] == "failed: the simulation blew up at frame 3"
     assert not by["friction"]["first_ok"]  # the stand-in found nothing
     # the friction case's model lacks the friction: its fit is told so
@@ -105,6 +106,7 @@ def test_the_table_resumes_each_stage_and_records_failures(tmp_path, monkeypatch
     saved = json.loads((tmp_path / "table.json").read_text())
     assert saved["level"] == "video" and saved["summary"]["runs"] == 3
     assert "| linear_drag | 0 | ✓ discovered |" in (tmp_path / "table.md").read_text()
+    assert "| 8.00 → 1.50 |" in (tmp_path / "table.md").read_text()
     n = len(calls)
     V.run_video_table(tmp_path, cfg)  # every row is there: nothing runs again
     assert len(calls) == n
