@@ -130,6 +130,7 @@ def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_
         (["discover", str(tmp_path / "obs.npz"), "--out", str(out), "--candidates", "magic"], "unknown candidate"),
         (["discover", str(tmp_path / "obs.npz"), "--out", str(out), "--effects", "gravity;warp"], "unknown effect"),
         (["discover", str(tmp_path / "obs.npz"), "--out", str(out), "--starts", "1e4,-3"], "--starts"),
+        (["discover", str(tmp_path / "obs.npz"), "--out", str(out), "--res", "3"], "--res 3"),
         (["discover-table", "--out", str(out), "--only", "nonsense"], "unknown case"),
     ]
     for argv, msg in bad:

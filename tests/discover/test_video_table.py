@@ -71,6 +71,7 @@ def _recorders(monkeypatch, calls, *, fail=()):
 
     def discover(run, out, *, config, log, resume):
         calls.append(("discover", resume))
+        assert config.res == 0  # each run's own grid (the truth's spacing): a coarser one changes the landing
         if "attractor" in str(run):
             raise CausalGSError("the simulation blew up at frame 3")
         found = [{"effect": "linear_drag", "params": {"linear_drag.c": 2.85},
