@@ -62,8 +62,8 @@ def _starts(text: str) -> tuple[float, ...]:
               help="Most Levenberg–Marquardt iterations per calibration (it stops when converged).")
 @click.option("--tracking", type=click.Choice(["refined", "kinematic"]), default="refined", show_default=True,
               help="For a run: the measured motion. 'refined': the run's tracked motion corrected frame by frame to "
-                   "that frame's images (one rigid correction per motion pattern; kept in RUN/tracks.npz, a few "
-                   "seconds a frame); 'kinematic': the run's velocity field as fitted, which smooths impacts.")
+                   "that frame's images (one rigid correction per motion pattern; kept in RUN/tracks.npz, about ten "
+                   "CPU-seconds a frame); 'kinematic': the run's velocity field as fitted, which smooths impacts.")
 @precision_option
 @click.option("--resume", is_flag=True,
               help="Continue the discovery run in --out (stopped, or to redo its outputs) from the calibrations it "
