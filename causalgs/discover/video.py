@@ -29,7 +29,7 @@ import torch
 
 from causalgs.discover.observation import Observation, noise_floor
 from causalgs.errors import CausalGSError
-from causalgs.model.refine import RefineConfig
+from causalgs.model.refine import RefineConfig, cached_tracks
 
 REFINE = RefineConfig()  # the measurement: the kinematic fit refined frame by frame (causalgs.model.refine)
 
@@ -58,7 +58,6 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = 6
     """The observation described in the module docstring and the run's base model: ``{"spec", "learn", "res"}``,
     with ``"tracking"`` (:func:`refined_quality`) where the motion was refined (``refine``; None measures the
     kinematic fit as it is). ``progress(done, total)`` follows the refinement, frame by frame."""
-    from causalgs.model.refine import cached_tracks
     from causalgs.sim.effects import Effects
 
     run_dir = Path(run_dir)
