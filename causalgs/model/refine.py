@@ -41,7 +41,7 @@ import torch
 
 from causalgs.errors import CausalGSError
 from causalgs.io import write_npz
-from causalgs.model.kinematic import pattern_motion, skew
+from causalgs.model.kinematic import blend, pattern_motion, skew
 from causalgs.render.reference import quat_scale_to_cov
 
 
@@ -77,8 +77,9 @@ class Tracks:
 
 
 def place(h: torch.Tensor, x0: torch.Tensor, A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """x = Σ_k h_k (A_k x0 + b_k) [N, 3] for mixtures h [N, K] and the patterns' affine motion A [K, 3, 3], b [K, 3]."""
-    return torch.einsum("nk,nki->ni", h, torch.einsum("kij,nj->nki", A, x0) + b)
+    """x = Σ_k h_k (A_k x0 + b_k) [N, 3] for mixtures h [N, K] and the patterns' affine motion A [K, 3, 3], b [K, 3]
+    (the kinematic path's blend, :func:`causalgs.model.kinematic.blend`, without the rotations)."""
+    return blend(h, x0, None, A, b, None)[0]
 
 
 def jacobian(h: torch.Tensor, A: torch.Tensor) -> torch.Tensor:
