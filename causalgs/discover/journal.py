@@ -41,13 +41,17 @@ def calibration_options(spec: str, learn, cfg, start: dict | None = None) -> dic
             "iterations": cfg.iterations, "warm": cfg.warm}  # fmt: skip
 
 
-def fingerprint(options: dict, x: np.ndarray) -> str:
-    """A digest of the run's options, its measurement (positions at full precision) and the causalgs version (a
-    calibration of another version may mean other things by the same θ)."""
+def fingerprint(options: dict, x: np.ndarray, mix: np.ndarray | None = None) -> str:
+    """A digest of the run's options, its measurement (positions at full precision, and the lens the simulation is
+    compared through, ``Observation.mix``) and the causalgs version (a calibration of another version may mean other
+    things by the same θ)."""
     from causalgs import __version__
 
     h = hashlib.sha256(json.dumps({"options": options, "version": __version__}, sort_keys=True).encode())
     h.update(np.ascontiguousarray(x, dtype=np.float64).tobytes())
+    if mix is not None:
+        h.update(b"mix")
+        h.update(np.ascontiguousarray(mix, dtype=np.float64).tobytes())
     return h.hexdigest()[:16]
 
 

@@ -15,7 +15,10 @@ Parameters (one flat float64 vector θ, so that least squares, sensitivities and
   times longer (5000 Pa·s on that grid: about 1200 substeps a frame) and one refit ran for over half an hour.
 
 The rollout is :func:`causalgs.sim.autograd.simulate` on the model's own grid (``res`` cells across the box): one
-forward and one checkpointed backward give the loss and its gradient in every entry of θ. Density is fixed (video
+forward and one checkpointed backward give the loss and its gradient in every entry of θ. Where the observation
+carries its measurement's lens (``Observation.mix``: tracks that move each motion pattern rigidly), the rollout is
+returned through it (:func:`~causalgs.discover.observation.rigid_projection`), so that simulation and measurement
+are compared in what the measurement can see. Density is fixed (video
 and trajectories only constrain E/ρ).
 """
 
@@ -28,7 +31,7 @@ import numpy as np
 import torch
 
 from causalgs import _ti
-from causalgs.discover.observation import Observation
+from causalgs.discover.observation import Observation, rigid_projection
 from causalgs.discover.residuals import twist_basis
 from causalgs.errors import CausalGSError
 from causalgs.sim import SimConfig, Simulator
@@ -109,6 +112,8 @@ class PhysicsModel:
         self.x0 = torch.as_tensor(obs.x[0], dtype=dt)
         self.centroids = torch.stack([self.x0[torch.as_tensor(obs.body == b)].mean(0) for b in range(obs.bodies)])
         self.body = torch.as_tensor(obs.body)
+        self._mix = None if obs.mix is None else torch.as_tensor(obs.mix, dtype=torch.float64)
+        self._vol = torch.as_tensor(obs.vol, dtype=torch.float64)
         knobs = []
         for b in range(obs.bodies):
             knobs += [Knob(f"{obs.names[b]}.E", "E", b), Knob(f"{obs.names[b]}.nu", "nu", b)]
@@ -293,4 +298,7 @@ class PhysicsModel:
         times = [float(obs.times[f] - obs.times[0]) for f in frames]
         x, _, _ = simulate(self.sim, self.x0, u["v0"].to(dt), u["E"].to(dt), u["nu"].to(dt), density, times,
                            u["params"].to(dt))  # fmt: skip
-        return x.double()
+        x = x.double()
+        if obs.mix is not None:  # compared through the measurement's lens (observation.rigid_projection)
+            x = rigid_projection(x, self.x0.double(), self._mix, self._vol)
+        return x

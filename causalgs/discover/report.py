@@ -222,6 +222,12 @@ def markdown(report: dict) -> str:
                   f"The measured motion is the run's tracked motion (its kinematic fit). Rendered at {tr['views']} "
                   f"training cameras it matches the images at a median PSNR of {tr['median']:.1f} dB over the "
                   f"{len(tr['frames'])} observed frames."]  # fmt: skip
+        if tr.get("lens_patterns"):
+            n = tr["lens_patterns"]
+            L.append(f"The tracks move each of the run's {n} motion pattern(s) rigidly, so the simulation is compared "
+                     "through the same lens: every rollout is replaced by the rigid motion per pattern that fits it "
+                     "best. A bounce, a slide, a spin or a drag is compared in full; a body's deformation within a "
+                     "pattern (an elastic wobble) is in neither the measurement nor the comparison.")  # fmt: skip
         if tr.get("pixel_m"):
             L.append(f"A pixel spans {_mm(tr['pixel_m'])} at the bodies; the noise credited to the measurement, "
                      f"{_mm(report['noise'])} per coordinate, is at least a quarter of it (tracking errs smoothly "

@@ -66,10 +66,11 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
                "candidates": None if candidates is None else list(candidates),
                "tracking": ("refined" if base.get("tracking", {}).get("refined") else "kinematic") if "run" in base
                else None,
+               "lens": None if obs.mix is None else f"rigid per motion pattern ({obs.mix.shape[1]})",
                "config": dataclasses.asdict(cfg)}  # fmt: skip
     if (out / "report.json").is_file() and not (out / "progress.json").is_file() and not resume:
         raise CausalGSError(f"{out} already holds a discovery report: choose another --out")
-    journal = Journal(out / "progress.json", fingerprint(calibration_options(spec, learn, cfg), obs.x),
+    journal = Journal(out / "progress.json", fingerprint(calibration_options(spec, learn, cfg), obs.x, obs.mix),
                       resume=resume)  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "discover.json", options)
@@ -82,7 +83,8 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
         tracking = tracking_quality(base["run"])
     report, traj = discover(obs, spec, learn, candidates=candidates, config=cfg, log=log, journal=journal)
     if tracking is not None:
-        report["tracking"] = {**tracking, "stray_particles": base.get("stray", 0), "pixel_m": base.get("pixel_m")}
+        report["tracking"] = {**tracking, "stray_particles": base.get("stray", 0), "pixel_m": base.get("pixel_m"),
+                              "lens_patterns": None if obs.mix is None else int(obs.mix.shape[1])}  # fmt: skip
     report["source"] = str(source)
     report["config"] = options
     if obs.truth is not None:

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from causalgs.discover.observation import Observation, noise_floor
+from causalgs.discover.observation import Observation, lens, noise_floor
 from causalgs.errors import CausalGSError
 from causalgs.model.refine import RefineConfig, cached_tracks
 
@@ -53,11 +53,14 @@ def _load(run_dir):
 
 
 def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = 600, min_share: float = 0.05,
-                         seed: int = 0, refine: RefineConfig | None = REFINE,
+                         seed: int = 0, refine: RefineConfig | None = REFINE, rigid_lens: bool = True,
                          progress=None) -> tuple[Observation, dict]:  # fmt: skip
     """The observation described in the module docstring and the run's base model: ``{"spec", "learn", "res"}``,
     with ``"tracking"`` (:func:`refined_quality`) where the motion was refined (``refine``; None measures the
-    kinematic fit as it is). ``progress(done, total)`` follows the refinement, frame by frame."""
+    kinematic fit as it is). The tracks move every motion pattern rigidly, so the observation carries that lens
+    (``Observation.mix``, the particles' pattern weights) and discovery compares the simulation through it;
+    ``rigid_lens=False`` compares point by point. ``progress(done, total)`` follows the refinement, frame by
+    frame."""
     from causalgs.sim.effects import Effects
 
     run_dir = Path(run_dir)
@@ -97,7 +100,7 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = 6
             keep.append((pick, vol_b))
         idx = np.concatenate([k for k, _ in keep])
         new_vol = np.concatenate([np.full(len(k), v / len(k)) for k, v in keep])
-        x, body, vol = x[:, idx], body[idx], new_vol
+        x, h, body, vol = x[:, idx], h[idx], body[idx], new_vol
     _, body = np.unique(body, return_inverse=True)
     lo, hi = (tuple(float(v) for v in row) for row in model.box.double().numpy())
     cfg = model.config.physics
@@ -108,7 +111,8 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = 6
         rho = float(model.causes()["density"].double().median())
     observed = max(3, n - round(held_out * n))
     obs = Observation(times=np.arange(n) / tl.fps, x=x, vol=vol, body=body, observed=observed, lo=lo, hi=hi,
-                      density=rho, ground=ground, names=[f"body {b}" for b in range(int(body.max()) + 1)])  # fmt: skip
+                      density=rho, ground=ground, names=[f"body {b}" for b in range(int(body.max()) + 1)],
+                      mix=lens(h) if rigid_lens else None)  # fmt: skip
     pixel = pixel_footprint(data.train, x[0].mean(0))
     obs.noise = max(noise_floor(obs), RESOLVE * pixel)
     base = {"spec": eff.spec(), "learn": tuple(cfg.learn), "res": int(cfg.res), "run": str(run_dir),

@@ -154,7 +154,8 @@ def test_calibration_recovers_a_throw_and_reaches_the_noise_floor():
         assert fit.rms < 1e-3 and v["cube.E"] == pytest.approx(3e4)
 
 
-def test_loss_gradient_matches_finite_differences_in_float64():
+@pytest.mark.parametrize("rigid_lens", [False, True])
+def test_loss_gradient_matches_finite_differences_in_float64(rigid_lens):
     from causalgs import _ti
     from causalgs.discover.calibrate import mse
     from causalgs.discover.model import PhysicsModel
@@ -162,6 +163,9 @@ def test_loss_gradient_matches_finite_differences_in_float64():
     _ti.init("cpu", "float64")
     try:
         obs = _flight(frames=5)
+        if rigid_lens:  # the simulation seen through rigid tracks: two blended patterns across the cube
+            s = np.clip((obs.x[0][:, 0] + 0.06) / 0.12, 0.0, 1.0)
+            obs.mix = np.stack([1.0 - s, s], 1)
         m = PhysicsModel(obs, "gravity;linear_drag:c=0.2;walls", ["linear_drag.c"], res=12)
         th = m.initial(E=2e4).requires_grad_(True)
         loss = mse(m, th, [1, 2, 3])
@@ -176,6 +180,66 @@ def test_loss_gradient_matches_finite_differences_in_float64():
             assert abs(fd - float(g[i])) <= 1e-5 * max(1.0, abs(fd)), (m.names[i], fd, float(g[i]))
     finally:
         _ti.init("cpu", "float32")
+
+
+def _turns(seed: int, n: int) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.random(n, random_state=seed).as_matrix()
+
+
+def test_rigid_projection_is_the_weighted_kabsch_fit_with_finite_gradients():
+    from scipy.spatial.transform import Rotation
+
+    from causalgs.discover.observation import rigid_projection
+
+    rng = np.random.default_rng(0)
+    x0 = _cube(n=5)
+    R = _turns(1, 3)
+    x = np.stack([(x0 - 0.5) @ R[t].T + 0.5 + 0.01 * t for t in range(3)]) + 0.002 * rng.standard_normal((3, 125, 3))
+    vol = rng.uniform(0.5, 1.5, len(x0))
+    one = np.ones((len(x0), 1))
+    got = rigid_projection(*(torch.tensor(a) for a in (x, x0, one, vol))).numpy()
+    for t in range(3):  # the plain reference: scipy's weighted Kabsch
+        c0, c = np.average(x0, 0, vol), np.average(x[t], 0, vol)
+        rot, _ = Rotation.align_vectors(x[t] - c, x0 - c0, weights=vol)
+        assert np.abs((x0 - c0) @ rot.as_matrix().T + c - got[t]).max() < 1e-12
+    # a rigid motion per pattern (what tracks are made of) passes through unchanged
+    s = (x0[:, 0] > 0).astype(float)
+    mix = np.stack([1.0 - s, s], 1)
+    xr = np.stack([sum(mix[:, [k]] * (x0 @ _turns(t, 2)[k].T + 0.02 * k) for k in range(2)) for t in range(3)])
+    back = rigid_projection(*(torch.tensor(a) for a in (xr, x0, mix, vol))).numpy()
+    assert np.abs(back - xr).max() < 1e-12
+    # float64 gradients, also where the points' covariance is isotropic (an SVD's gradient is not finite there)
+    corners = torch.tensor([[i, j, k] for i in (-1.0, 1.0) for j in (-1.0, 1.0) for k in (-1.0, 1.0)]) * 0.05
+    corners = corners.double()
+    soft = np.clip((x0[:, 0] + 0.06) / 0.12, 0.0, 1.0)[::6]
+    soft = torch.tensor(np.stack([1.0 - soft, soft], 1))
+    for pts, w in ((torch.tensor(x0[::6]), soft), (corners, torch.ones(8, 1).double())):
+        moved = (pts @ torch.tensor(R[0]).T + 0.001 * torch.randn(pts.shape, dtype=torch.float64))[None]
+        fn = lambda a, p=pts, w=w: rigid_projection(a, p, w, torch.ones(len(p)).double())  # noqa: E731
+        assert torch.autograd.gradcheck(fn, (moved.requires_grad_(True),))
+
+
+def test_an_observation_carries_its_lens(tmp_path):
+    from causalgs.discover.observation import lens
+
+    obs = _flight()
+    P = obs.points
+    for bad, why in ((np.ones((P - 1, 1)), "shape"), (np.full((P, 2), 0.4), "sum to 1"),
+                     (np.full((P, 1), np.nan), "finite")):  # fmt: skip
+        with pytest.raises(CausalGSError, match=why) as e:
+            Observation(times=obs.times, x=obs.x, vol=obs.vol, body=obs.body, observed=6, lo=obs.lo, hi=obs.hi,
+                        mix=bad)  # fmt: skip
+        assert "\n" not in str(e.value)
+    raw = np.zeros((P, 3))
+    raw[:, 0], raw[:, 2] = 0.7, 0.7  # an empty pattern is dropped and the rest renormalised
+    obs.mix = lens(raw)
+    assert obs.mix.shape == (P, 2) and np.allclose(obs.mix, 0.5)
+    obs.save(tmp_path / "obs.npz")
+    assert np.array_equal(load_observation(tmp_path / "obs.npz").mix, obs.mix)
+    with pytest.raises(CausalGSError, match="no motion pattern"):
+        lens(np.zeros((P, 2)))
 
 
 def test_candidates_apply_only_where_the_base_lacks_them():

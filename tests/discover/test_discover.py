@@ -280,3 +280,6 @@ def test_the_report_says_the_measurement_was_refined_and_what_it_gained():
     assert "refined frame by frame" in text and "median PSNR of 30.8 dB" in text and "alone: 27.8 dB" in text
     assert "worst frame 26.0 dB against 21.0" in text and "frames 4: a disagreement there" in text
     assert "longer kinematic fit" not in text  # that advice is for the kinematic fit's own tracks
+    assert "same lens" not in text  # compared point by point
+    rep["tracking"]["lens_patterns"] = 2
+    assert "each of the run's 2 motion pattern(s) rigidly" in markdown(rep)

@@ -456,6 +456,13 @@ def test_discovery_reads_a_fitted_run(fitted, tmp_path):
     assert obs.x.shape == (n, int(keep.sum()), 3) and obs.observed == n - round(0.25 * n)
     assert np.isclose(obs.vol.sum(), float(m.particles.vol.double().numpy()[keep].sum()), rtol=1e-6)
     assert np.allclose(obs.x[-1], track[1].double().numpy()[keep], atol=1e-6)
+    # The tracks move each motion pattern rigidly: the observation carries those weights as its lens.
+    with torch.no_grad():
+        h = m.mixtures(x0).double().numpy()[keep]
+    used = h.sum(0) > 1e-3
+    assert obs.mix.shape == (obs.points, int(used.sum())) and np.allclose(obs.mix.sum(1), 1.0)
+    assert np.allclose(obs.mix, h[:, used] / h[:, used].sum(1, keepdims=True))
+    assert observation_from_run(fitted, refine=None, rigid_lens=False)[0].mix is None
     assert base["res"] == m.config.physics.res and base["learn"] == tuple(m.config.physics.learn)
     # The measurement's noise is at least a quarter of a pixel at the bodies (depth / focal length).
     from causalgs.discover.video import RESOLVE
@@ -495,7 +502,10 @@ def test_discovery_reads_a_fitted_run(fitted, tmp_path):
     one = float(psnr(img.double().clamp(0, 1), torch.from_numpy(fr.image).double()))
     assert abs(tracking_quality(fitted, views=1)["psnr"][-1] - one) < 1e-9 * one  # one camera: the first
     assert tr["poor"] == [k for k, v in zip(tr["frames"], tr["psnr"], strict=True) if v < tr["median"] - 3.0]
-    assert "## The measurement" in (out / "report.md").read_text()
+    assert "## The measurement" in (out / "report.md").read_text() and "compared through the same lens" in (
+        out / "report.md"
+    ).read_text()
+    assert rep["config"]["lens"].startswith("rigid per motion pattern") and tr["lens_patterns"] >= 1
     assert _ranges([3, 4, 5, 9, 11, 12]) == "3–5, 9, 11–12" and _ranges([]) == ""
     # The repair goes into a config a refit can use: the run's, with the discovered effect learned from its value.
     from causalgs.discover.run import _repaired_config
