@@ -258,6 +258,12 @@ def markdown(report: dict) -> str:
             else:
                 L.append(f"| {s['effect']} | {s['gain']:.3f} | {r['future_mse_cm2']:.3g} | "
                          f"{'yes' if r['passed'] else 'no'} | {'; '.join(r['reasons'])} |")  # fmt: skip
+        rb = rnd.get("rebased")
+        if rb:
+            L += ["", f"The model without the candidates, recalibrated from where the `{rb['from']}` refit went, fit "
+                  f"the window better ({rb['train_before_cm2']:.3g} → {rb['train_after_cm2']:.3g} cm²; held out "
+                  f"{rb['future_before_cm2']:.3g} → {rb['future_after_cm2']:.3g} cm²): the candidates were judged "
+                  "against it, as what they add must be more than a better minimum of the base."]  # fmt: skip
         L.append("")
     if report["discovered"]:
         d0 = report["discovered"][0]

@@ -438,6 +438,39 @@ def test_calibration_method_follows_the_number_of_free_parameters(monkeypatch):
     assert used == ["lm"]
 
 
+def test_the_base_is_recalibrated_from_where_a_better_refit_went():
+    """A refit may find a better minimum of the base parameters that owes nothing to its candidate; the model
+    without the candidate is refitted from there, and the candidates are judged against that."""
+    from causalgs import _ti
+    from causalgs.discover.calibrate import Fit, mse
+    from causalgs.discover.journal import Journal
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.search import DiscoverConfig, _rebase, _state
+
+    _ti.init("cpu", "float32")
+    obs = _flight()
+    base_model = PhysicsModel(obs, "gravity;walls", res=16)
+    drag_model = PhysicsModel(obs, "gravity;walls;linear_drag:c=0.0", ["linear_drag.c"], res=16)
+    good = drag_model.initial(E=3e4)  # the true throw, no drag: a refit that went to a better throw
+    bad = base_model.initial(E=3e4)
+    bad[base_model.index("cube.v0[2]")] += 0.2  # the base stuck in a worse one
+    frames = list(range(1, obs.observed))
+
+    def state(model, th):
+        return _state(model, Fit(th, float(mse(model, th, frames)), 1, 3e4))
+
+    current, refit = state(base_model, bad), state(drag_model, good)
+    assert refit.train < 0.1 * current.train
+    log = []
+    new, origin = _rebase(current, [(BY_KEY["linear_drag"], refit)], DiscoverConfig(iterations=5), Journal(None, ""),
+                          "round 1", log.append)  # fmt: skip
+    assert origin == "linear_drag" and new.model is base_model and new.train < 0.1 * current.train
+    assert abs(base_model.values(new.fit.theta)["cube.v0[2]"] - 1.0) < 0.02 and "from the linear_drag" in log[0]
+    same, none = _rebase(refit, [(BY_KEY["linear_drag"], current)], DiscoverConfig(iterations=5), Journal(None, ""),
+                         "round 1", log.append)  # fmt: skip
+    assert same is refit and none is None and len(log) == 1  # a worse refit is no start for the base
+
+
 def test_a_refit_starts_afresh_from_what_the_missing_effect_biased():
     """The second refit start keeps the candidate's new parameters and a base stiffness inside its range, but resets
     the Poisson ratio, the throw, and a stiffness pinned at a bound of its range (a block gone as soft as allowed to

@@ -283,3 +283,18 @@ def test_the_report_says_the_measurement_was_refined_and_what_it_gained():
     assert "same lens" not in text  # compared point by point
     rep["tracking"]["lens_patterns"] = 2
     assert "each of the run's 2 motion pattern(s) rigidly" in markdown(rep)
+
+
+def test_the_report_says_when_the_base_was_recalibrated_from_a_refit():
+    from causalgs.discover.report import markdown
+
+    rep = _fake_report(None)
+    rep["rounds"] = [{"screen": [{"effect": "plasticity", "gain": 0.03}],
+                      "refits": [{"effect": "plasticity", "future_mse_cm2": 0.2, "passed": False,
+                                  "reasons": ["held-out error drop 2% < 15%"]}],
+                      "rebased": {"from": "plasticity", "train_before_cm2": 0.042, "train_after_cm2": 0.019,
+                                  "future_before_cm2": 0.5, "future_after_cm2": 0.21}}]  # fmt: skip
+    text = markdown(rep)
+    assert "recalibrated from where the `plasticity` refit went" in text and "0.042 → 0.019 cm²" in text
+    del rep["rounds"][0]["rebased"]
+    assert "recalibrated" not in markdown(rep)
