@@ -67,11 +67,11 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
                "tracking": ("refined" if base.get("tracking", {}).get("refined") else "kinematic") if "run" in base
                else None,
                "lens": None if obs.mix is None else f"rigid per motion pattern ({obs.mix.shape[1]})",
-               "config": dataclasses.asdict(cfg)}  # fmt: skip
+               "config": dataclasses.asdict(cfg), "box": [list(obs.lo), list(obs.hi)]}  # fmt: skip
     if (out / "report.json").is_file() and not (out / "progress.json").is_file() and not resume:
         raise CausalGSError(f"{out} already holds a discovery report: choose another --out")
-    journal = Journal(out / "progress.json", fingerprint(calibration_options(spec, learn, cfg), obs.x, obs.mix),
-                      resume=resume)  # fmt: skip
+    key = fingerprint({**calibration_options(spec, learn, cfg), "box": [obs.lo, obs.hi]}, obs.x, obs.mix)
+    journal = Journal(out / "progress.json", key, resume=resume)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "discover.json", options)
     tracking = base.get("tracking")  # refined tracks come scored on held-out cameras

@@ -530,6 +530,8 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
                 report["base"]["values"] = base_model.values(rebased.fit.theta)
                 report["base"]["rebased_from"] = origin
                 base = first = rebased
+                report["disagreement"] = _disagreement(base, obs, floor)  # the map of the better base
+                report["first_departure"] = report["disagreement"]["first_departure"]
             current = rebased
             best_train = min(best_train, current.train)
         for _, st in refits:

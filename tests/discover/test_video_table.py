@@ -69,9 +69,10 @@ def _recorders(monkeypatch, calls, *, fail=()):
             raise KeyboardInterrupt  # the fit stops half-way: a checkpoint, no finished run.json
         (run / "run.json").write_text(json.dumps({"status": "done", "total_seconds": 700.0}))
 
-    def discover(run, out, *, config, log, resume):
+    def discover(run, out, *, config, log, resume, grid):
         calls.append(("discover", resume))
-        assert config.res == 0  # each run's own grid (the truth's spacing): a coarser one changes the landing
+        assert config.res == 0  # each run's own grid, unless the truth's is given (the default)
+        assert grid == ((-0.5, -0.5, -0.1), (0.5, 0.5, 0.9), 43)  # the truth's: the synth box, its reference cells
         if "attractor" in str(run):
             raise CausalGSError("the simulation blew up at frame 3")
         found = [{"effect": "linear_drag", "params": {"linear_drag.c": 2.85},
