@@ -127,6 +127,11 @@ def _gap(gap) -> str:
     return f"; its excess over the first, 95% paired bootstrap: [{lo:+.3g}, {hi:+.3g}] cm²"
 
 
+def _future_floor(report: dict) -> str:
+    return (f"the floor {_mm(report['floor_rms_m'])} and the fit window's noise carried forward "
+            f"{_mm(report['predictive_rms_m'])}")
+
+
 def markdown(report: dict) -> str:
     """The report for people: verdict first, then the law with its interval, the evidence, the runners-up, the base
     parameters before and after, and the errors."""
@@ -170,9 +175,13 @@ def markdown(report: dict) -> str:
     elif report["verdict"] == "unexplained discrepancy":
         ratio = eb["fit_rms_m"] / report["floor_rms_m"]
         fut = eb["future_rms_m"] / report["floor_rms_m"]
+        held = f"{fut:.1f}× on the held-out frames"
+        if report.get("future_floor_rms_m"):
+            held = (f"{eb['future_rms_m'] / report['future_floor_rms_m']:.1f}× on the held-out frames above what a "
+                    f"correct model would miss them by ({_mm(report['future_floor_rms_m'])}: {_future_floor(report)})")
         L += ["## Something is missing that the catalogue does not name", "",
               f"The calibrated model stays {ratio:.1f}× above the noise floor ({_mm(report['floor_rms_m'])} per "
-              f"coordinate) on the fit window and {fut:.1f}× on the held-out frames, in rigid motion of the bodies "
+              f"coordinate) on the fit window and {held}, in rigid motion of the bodies "
               "that a free force would remove, but no candidate passed "
               f"the gate. A force constant over a few time blocks explains "
               f"{_pct(report['disagreement']['residual_force_gain'])} of the residual acceleration (low: impulses "
@@ -182,6 +191,10 @@ def markdown(report: dict) -> str:
         L += ["## No missing effect", "",
               f"The calibrated model is within {ratio:.2f}× of the noise floor ({_mm(report['floor_rms_m'])} per "
               "coordinate), and no candidate improves the held-out frames enough to pass the gate.", ""]  # fmt: skip
+        if report.get("future_floor_rms_m"):
+            L[-1:] = [f"On the held-out frames it misses by {_mm(eb['future_rms_m'])}, "
+                      f"{eb['future_rms_m'] / report['future_floor_rms_m']:.1f}× what a correct model would miss them "
+                      f"by ({_mm(report['future_floor_rms_m'])}: {_future_floor(report)}).", ""]  # fmt: skip
     L += ["## Errors (RMS distance per point)", "", "| | fit window | held-out future |", "|---|---|---|",
           f"| before | {_mm(eb['fit_rms_m'])} | {_mm(eb['future_rms_m'])} |",
           f"| after | {_mm(ea['fit_rms_m'])} | {_mm(ea['future_rms_m'])} |", "",

@@ -471,6 +471,31 @@ def test_the_base_is_recalibrated_from_where_a_better_refit_went():
     assert same is refit and none is None and len(log) == 1  # a worse refit is no start for the base
 
 
+def test_predictive_spread_follows_least_squares_for_a_throw():
+    """How far a correct model's held-out prediction moves with another draw of the window's noise: for a free
+    flight it is the throw's least-squares error carried forward, growing with the noise."""
+    from causalgs import _ti
+    from causalgs.discover.calibrate import calibrate
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.search import DiscoverConfig, _state, predictive_rms
+
+    _ti.init("cpu", "float32")
+    out = []
+    for noise in (0.002, 0.004):
+        obs = _flight(frames=16, fps=60.0, noise=noise)  # in the air throughout
+        obs.noise = noise
+        m = PhysicsModel(obs, "gravity;walls", res=16)
+        st = _state(m, calibrate(m, m.initial(E=3e4), iterations=10))  # residuals of the least-squares throw
+        out.append(predictive_rms(st, DiscoverConfig()))
+    # the throw (u, ω) by least squares from the window: the translation alone gives t'² σ² / (P Σ t²) per
+    # coordinate at a held-out time t'; the spin adds about as much again
+    t = obs.times
+    fit_t, fut_t = t[1:obs.observed], t[obs.observed:]
+    plain = 0.002 * np.sqrt((fut_t**2).mean() / (obs.points * (fit_t**2).sum()))
+    assert plain < out[0] < 3.0 * plain, (out[0], plain)
+    assert out[1] == pytest.approx(2.0 * out[0], rel=0.25)
+
+
 def test_a_refit_starts_afresh_from_what_the_missing_effect_biased():
     """The second refit start keeps the candidate's new parameters and a base stiffness inside its range, but resets
     the Poisson ratio, the throw, and a stiffness pinned at a bound of its range (a block gone as soft as allowed to

@@ -298,3 +298,16 @@ def test_the_report_says_when_the_base_was_recalibrated_from_a_refit():
     assert "recalibrated from where the `plasticity` refit went" in text and "0.042 → 0.019 cm²" in text
     del rep["rounds"][0]["rebased"]
     assert "recalibrated" not in markdown(rep)
+
+
+def test_the_report_weighs_the_held_out_error_against_what_a_correct_model_would_miss():
+    from causalgs.discover.report import markdown
+
+    rep = _fake_report(None)
+    rep["error_before"] = rep["error_after"] = {"fit_rms_m": 0.0015, "future_rms_m": 0.0053}
+    rep.update(future_floor_rms_m=0.0025, predictive_rms_m=0.0020, floor_rms_m=0.0015)
+    text = markdown(rep)
+    assert "misses by 5.30 mm, 2.1× what a correct model would miss them by (2.50 mm" in text
+    assert "fit window's noise carried forward 2.00 mm" in text
+    rep["verdict"] = "unexplained discrepancy"
+    assert "3.5× on the held-out frames" not in markdown(rep) and "2.1× on the held-out frames" in markdown(rep)
