@@ -163,6 +163,12 @@ def inert_step(model: PhysicsModel) -> float:
     return max(INERT * float(noise), 1e-6)
 
 
+def live(model: PhysicsModel, J: np.ndarray) -> np.ndarray:
+    """[k] bool: the columns of ``J`` (cm per unit step, as :func:`jacobian` returns) whose unit step moves some point
+    further than :func:`inert_step`."""
+    return np.abs(J).max(0) * UNIT > inert_step(model)
+
+
 def _levenberg_marquardt(model: PhysicsModel, theta0: torch.Tensor, frames, iterations: int, free) -> Fit:
     """Damped Gauss–Newton steps (J^T J + λ diag(J^T J)) δ = J^T r; λ shrinks after an accepted step and grows
     after a rejected one (a worse or blown-up trial). Stops when an accepted step gains less than 1e-5 of the loss,
@@ -180,14 +186,13 @@ def _levenberg_marquardt(model: PhysicsModel, theta0: torch.Tensor, frames, iter
     r = target - x
     loss = float(r @ r) / len(r)
     lam, count = 1e-2, 1
-    inert = inert_step(model)
     for _ in range(iterations):
         J = jacobian(model, theta, frames, idx, base=x)
         count += len(idx)
-        live = np.abs(J).max(0) * UNIT > inert  # per unit step (m); the rest of θ is held where it is
-        if not live.any():
+        moving = live(model, J)  # the rest of θ is held where it is
+        if not moving.any():
             break
-        J = J[:, live]
+        J = J[:, moving]
         A, g = J.T @ J, J.T @ r
         D = np.diag(A) + 1e-9 * max(float(np.diag(A).max()), 1e-12)
         before = loss
@@ -195,7 +200,7 @@ def _levenberg_marquardt(model: PhysicsModel, theta0: torch.Tensor, frames, iter
         for _ in range(10):
             delta = np.linalg.solve(A + lam * np.diag(D), g)
             trial = theta.clone()
-            trial[np.asarray(idx)[live]] += torch.as_tensor(delta, dtype=trial.dtype)
+            trial[np.asarray(idx)[moving]] += torch.as_tensor(delta, dtype=trial.dtype)
             count += 1
             try:
                 x2 = positions(model, trial, frames)

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from causalgs.discover import residuals as R
-from causalgs.discover.calibrate import UNIT, Fit, fit_frames, inert_step, positions
+from causalgs.discover.calibrate import UNIT, Fit, fit_frames, live, positions
 from causalgs.discover.candidates import Candidate, select
 from causalgs.discover.gate import GateConfig, block_bootstrap, effective_n, judge
 from causalgs.discover.journal import Journal
@@ -277,19 +277,17 @@ def predictive_rms(state: State, cfg: DiscoverConfig, sigma: float) -> float:
         return 0.0
     J_all = sensitivities(model, state.fit.theta, fr + fut)
     n_fit = len(fr) * obs.points * 3
-    # parameters the window does not move (a stiffness in a free flight) are not estimated from it
-    live = np.abs(J_all[:n_fit]).max(0) * UNIT > inert_step(model)
-    J, J_fut = J_all[:n_fit, live], J_all[n_fit:, live]
-    if not live.any():
+    moving = live(model, J_all[:n_fit])  # a parameter the window does not move is not estimated from it
+    if not moving.any():
         return 0.0
+    J, J_fut = J_all[:n_fit, moving], J_all[n_fit:, moving]
     n_eff = effective_n(len(fr), obs.bodies, obs.points, cfg.gate.clusters_per_body)
     cov = (sigma / UNIT) ** 2 * np.linalg.pinv(J.T @ J) * (n_fit / max(n_eff, 1))
     var = np.einsum("ij,jk,ik->i", J_fut, cov, J_fut)
     return float(np.sqrt(max(var.mean(), 0.0))) * UNIT
 
 
-def _future_floor(report: dict, state: State, obs: Observation, floor: float, sigma: float,
-                  cfg: DiscoverConfig) -> float:  # fmt: skip
+def _future_floor(report: dict, state: State, floor: float, cfg: DiscoverConfig) -> float:
     """What a correct model would miss the held-out frames by (m per coordinate): the floor and
     :func:`predictive_rms` together; recorded in ``report["future_floor_rms_m"]``."""
     spread = predictive_rms(state, cfg, floor)
@@ -655,8 +653,8 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         report["verdict"] = "discovered"
     elif math.sqrt(base.train) * UNIT > cfg.unexplained_floor * floor_coord or (
         math.sqrt(base.future) * UNIT > cfg.unexplained_future * floor_coord
-        and math.sqrt(base.future) * UNIT > cfg.unexplained_future * _future_floor(report, base, obs, floor_coord,
-                                                                                    sigma, cfg)):  # fmt: skip
+        and math.sqrt(base.future) * UNIT > cfg.unexplained_future * _future_floor(report, base, floor_coord, cfg)
+    ):  # fmt: skip
         report["verdict"] = "unexplained discrepancy"
     else:
         report["verdict"] = "no missing effect"
