@@ -152,7 +152,7 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
                    "run's box).  [default: trajectory 20; video: the truth's own grid, its box and cells]")
 @click.option("--run-grid", is_flag=True,
               help="Video level: discover on each run's own grid (as a user without a truth would) instead of the "
-                   "truth's. The landing's contact is not converged in the grid: a grid 10%% off moves its held-out "
+                   "truth's. The landing's contact is not converged in the grid: a grid 10% off moves its held-out "
                    "prediction by 2-3 cm.")
 @click.option("--jobs", type=click.IntRange(1, 64), default=1, show_default=True,
               help="Runs at once, each in its own process.")

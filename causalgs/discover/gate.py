@@ -15,11 +15,14 @@ A refit candidate is accepted only if all of these hold (``../shared/DISCOVERY.m
    (:func:`causalgs.discover.residuals.rigid_floor`; below the noise, a better fit of the window is fitting the
    noise and tells candidates nothing), and within ``noise_factor`` (1.25×) of that noise floor; otherwise the
    candidate explains only part of the discrepancy ("not converged", or an effect the catalogue does not name);
-5. the refit predicts the held-out frames to within ``future_factor`` (3×) of that noise floor (RMS): an entry of
-   the catalogue that matches the fit window by mimicking an effect it is not (a uniform force for a pull that
-   grows with the distance from a point) extrapolates the fit window, and misses the future by far more than the
-   missing effect's own refit does (on the video-level flights: 1.5–1.7× for the true effect, 3.9× for a
-   uniform force standing in for that pull).
+5. the refit predicts the held-out frames to within ``future_factor`` (3×) of what a correct model would miss
+   them by (RMS): the noise floor and the fit window's noise carried forward through the refit's own linearised
+   least squares (:func:`causalgs.discover.search.predictive_rms`; a bounce extrapolated from a noisy window is
+   uncertain by more than the noise, a free flight hardly). An entry of the catalogue that matches the fit window
+   by mimicking an effect it is not (a uniform force for a pull that grows with the distance from a point)
+   extrapolates the fit window, and misses the future by far more than the missing effect's own refit does (on
+   the video-level flights: 1.5–1.7× the noise floor for the true effect, 3.9× for a uniform force standing in
+   for that pull).
 
 Intervals are the bootstrap's 2.5–97.5% percentiles around the fitted value.
 """
@@ -81,16 +84,20 @@ class Verdict:
 
 def judge(*, base_train: float, base_future: float, train: float, future: float, best_train: float,
           k_new: int, n_eff: int, k_base: int, z: dict, cfg: GateConfig,
-          noise: float | None = None, pinned: dict | None = None) -> Verdict:  # fmt: skip
+          noise: float | None = None, future_noise: float | None = None,
+          pinned: dict | None = None) -> Verdict:  # fmt: skip
     """Apply the checks of the module docstring. ``*_train``/``*_future``: mean squared errors (one unit);
     ``z``: new parameter → |value − off| / standard error; ``noise``: the noise floor as a mean squared error in
-    the same unit (None: not checked); ``pinned``: new parameter → "upper"/"lower", those held at a bound."""
+    the same unit (None: not checked); ``future_noise``: what a correct model would miss the held-out frames by,
+    likewise (None: ``noise``); ``pinned``: new parameter → "upper"/"lower", those held at a bound."""
     drop = 1.0 - future / max(base_future, 1e-300)
     d_bic = bic(train, n_eff, k_base + k_new) - bic(base_train, n_eff, k_base)
     reached = max(best_train, noise) if noise is not None else best_train
     floor_ok = train <= (cfg.floor_factor**2) * reached and train < base_train
     noise_ok = noise is None or train <= (cfg.noise_factor**2) * noise
-    future_ok = noise is None or future <= (cfg.future_factor**2) * noise
+    if future_noise is None:
+        future_noise = noise
+    future_ok = future_noise is None or future <= (cfg.future_factor**2) * future_noise
     checks = {
         "future_drop": drop,
         "delta_bic": d_bic,
@@ -98,6 +105,7 @@ def judge(*, base_train: float, base_future: float, train: float, future: float,
         "train_rms_ratio_to_best": math.sqrt(train / max(best_train, 1e-300)),
         "train_rms_ratio_to_noise": None if noise is None else math.sqrt(train / max(noise, 1e-300)),
         "future_rms_ratio_to_noise": None if noise is None else math.sqrt(future / max(noise, 1e-300)),
+        "future_rms_ratio_to_floor": None if future_noise is None else math.sqrt(future / max(future_noise, 1e-300)),
     }
     reasons = []
     if drop <= -0.005:
@@ -119,6 +127,7 @@ def judge(*, base_train: float, base_future: float, train: float, future: float,
     elif not noise_ok:
         reasons.append(f"the refit stays {math.sqrt(train / noise):.2f}× above the noise floor (explains only part)")
     if not future_ok:
-        reasons.append(f"the refit misses the held-out frames by {math.sqrt(future / noise):.1f}× the noise floor "
+        what = "the noise floor" if future_noise == noise else "what a correct model would"
+        reasons.append(f"the refit misses the held-out frames by {math.sqrt(future / future_noise):.1f}× {what} "
                        "(it fits the window, not the law)")
     return Verdict(not reasons, checks, reasons)

@@ -81,6 +81,9 @@ class State:
     # how far the future error would move had the fit window's noise been another draw. Resamples share their
     # blocks across candidates (one seed), so two candidates' samples are paired.
     future_samples: np.ndarray | None = None
+    # How far the held-out prediction would move with another draw of the window's noise (m per coordinate,
+    # :func:`predictive_rms`; set by ``_uncertainty`` when given the floor).
+    spread: float | None = None
 
 
 def _state(model: PhysicsModel, fit: Fit) -> State:
@@ -275,8 +278,16 @@ def predictive_rms(state: State, cfg: DiscoverConfig, sigma: float) -> float:
     fut = list(range(obs.observed, len(obs.times)))
     if not fut:
         return 0.0
-    J_all = sensitivities(model, state.fit.theta, fr + fut)
+    return _spread(model, sensitivities(model, state.fit.theta, fr + fut), sigma, cfg)
+
+
+def _spread(model: PhysicsModel, J_all: np.ndarray, sigma: float, cfg: DiscoverConfig) -> float:
+    """:func:`predictive_rms` from the sensitivities ``J_all`` of the fit-window rows then the held-out rows."""
+    obs = model.obs
+    fr = fit_frames(model)
     n_fit = len(fr) * obs.points * 3
+    if J_all.shape[0] <= n_fit:
+        return 0.0
     moving = live(model, J_all[:n_fit])  # a parameter the window does not move is not estimated from it
     if not moving.any():
         return 0.0
@@ -296,10 +307,12 @@ def _future_floor(report: dict, state: State, floor: float, cfg: DiscoverConfig)
     return report["future_floor_rms_m"]
 
 
-def _uncertainty(state: State, params, cfg: DiscoverConfig, rest_sigma: float = 0.0) -> dict:
+def _uncertainty(state: State, params, cfg: DiscoverConfig, rest_sigma: float = 0.0, floor: float = 0.0) -> dict:
     """Bootstrap intervals and z-scores of ``params`` at the refit (see :mod:`causalgs.discover.gate`).
     ``rest_sigma`` > 0 (m): the rest shape's own error, whose effect (:func:`rest_shape_draws`) is added to the
-    bootstrap's samples (independent sources: each bootstrap sample gets one rest-shape draw, in turn)."""
+    bootstrap's samples (independent sources: each bootstrap sample gets one rest-shape draw, in turn).
+    ``floor`` > 0 (m per coordinate): also sets ``state.spread``, :func:`predictive_rms` at that noise, from the
+    same sensitivities."""
     model, obs = state.model, state.model.obs
     fr = fit_frames(model)
     fut = list(range(obs.observed, len(obs.times)))
@@ -307,6 +320,8 @@ def _uncertainty(state: State, params, cfg: DiscoverConfig, rest_sigma: float = 
     J_all = sensitivities(model, th, fr + fut)  # the held-out rows cost no extra rollout
     n_fit = len(fr) * obs.points * 3
     J, J_fut = J_all[:n_fit], J_all[n_fit:]
+    if floor > 0:
+        state.spread = _spread(model, J_all, floor, cfg)
     r = (obs.x[fr] - state.sim[[f - 1 for f in fr]]).reshape(-1) / UNIT
     dev = block_bootstrap(J, r, len(fr), cfg.gate)  # [S, k] in internal units
     rest, rest_fut = np.zeros((0, len(th))), None
@@ -577,7 +592,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         n_eff = effective_n(len(fit_frames(current.model)), obs.bodies, obs.points, cfg.gate.clusters_per_body)
         passed = []
         for c, st in refits:
-            unc = _uncertainty(st, c.params, cfg)
+            unc = _uncertainty(st, c.params, cfg, floor=floor_coord)
             z = significance(unc)
             if c.replaces is not None:  # structural: the plane offset is not a new parameter of interest
                 z = {}
@@ -585,6 +600,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
                       best_train=best_train, k_new=len(c.params), n_eff=n_eff,
                       k_base=len(current.model.knobs), z=z, cfg=cfg.gate,
                       noise=(floor_coord / UNIT) ** 2,
+                      future_noise=(floor_coord**2 + st.spread**2) / UNIT**2,
                       pinned=st.model.pinned(st.fit.theta, c.params))  # fmt: skip
             res = {"effect": c.key, "train_mse_cm2": st.train, "future_mse_cm2": st.future, "passed": v.passed,
                    "checks": v.checks, "reasons": v.reasons, "params": _public(unc),

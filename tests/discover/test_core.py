@@ -327,6 +327,12 @@ def test_gate_statistics():
     missed = judge(train=1.0, best_train=1.0, noise=1.6, **dict(far, future=15.0))  # 3.06×
     assert not missed.passed and missed.reasons == ["the refit misses the held-out frames by 3.1× the noise floor "
                                                     "(it fits the window, not the law)"]  # fmt: skip
+    # ... where a correct model would miss them by more (the window's noise carried forward), by 3× that
+    carried = judge(train=1.0, best_train=1.0, noise=1.6, future_noise=2.0, **dict(far, future=15.0))
+    assert carried.passed and carried.checks["future_rms_ratio_to_floor"] == pytest.approx(math.sqrt(7.5))
+    beyond = judge(train=1.0, best_train=1.0, noise=1.6, future_noise=2.0, **dict(far, future=18.5))  # 3.04×
+    assert not beyond.passed and beyond.reasons == ["the refit misses the held-out frames by 3.0× what a correct "
+                                                    "model would (it fits the window, not the law)"]  # fmt: skip
     no_future = judge(base_train=4.0, base_future=9.0, train=1.0, future=8.5, best_train=1.0, k_new=1, n_eff=300,
                       k_base=8, z={"c": 8.0}, cfg=cfg)  # fmt: skip
     assert not no_future.passed
@@ -477,7 +483,7 @@ def test_predictive_spread_follows_least_squares_for_a_throw():
     from causalgs import _ti
     from causalgs.discover.calibrate import calibrate
     from causalgs.discover.model import PhysicsModel
-    from causalgs.discover.search import DiscoverConfig, _state, predictive_rms
+    from causalgs.discover.search import DiscoverConfig, _state, _uncertainty, predictive_rms
 
     _ti.init("cpu", "float32")
     out = []
@@ -487,6 +493,8 @@ def test_predictive_spread_follows_least_squares_for_a_throw():
         m = PhysicsModel(obs, "gravity;walls", res=16)
         st = _state(m, calibrate(m, m.initial(E=3e4), iterations=10))  # residuals of the least-squares throw
         out.append(predictive_rms(st, DiscoverConfig(), noise))
+        _uncertainty(st, [], DiscoverConfig(), floor=noise)  # the gate's copy, from the bootstrap's sensitivities
+        assert st.spread == pytest.approx(out[-1], rel=1e-9)
     # the throw (u, ω) by least squares from the window: the translation alone gives t'² σ² / (P Σ t²) per
     # coordinate at a held-out time t', times P / (effective clusters) for the gate's effective sample size; the
     # spin adds less than as much again
