@@ -109,7 +109,9 @@ class PhysicsModel:
         self.sim = Simulator(store, cfg)
         self._owner = _OWNER
         dt = _ti.torch_dtype()
-        self.x0 = torch.as_tensor(obs.x[0], dtype=dt)
+        self.x0 = torch.as_tensor(obs.x[0], dtype=dt)  # where the simulated material starts
+        # where the measured points start: the lens carries the material's fitted motions to them
+        self.points0 = self.x0
         self.centroids = torch.stack([self.x0[torch.as_tensor(obs.body == b)].mean(0) for b in range(obs.bodies)])
         self.body = torch.as_tensor(obs.body)
         self._mix = None if obs.mix is None else torch.as_tensor(obs.mix, dtype=torch.float64)
@@ -300,5 +302,5 @@ class PhysicsModel:
                            u["params"].to(dt))  # fmt: skip
         x = x.double()
         if obs.mix is not None:  # compared through the measurement's lens (observation.rigid_projection)
-            x = rigid_projection(x, self.x0.double(), self._mix, self._vol)
+            x = rigid_projection(x, self.x0.double(), self._mix, self._vol, at=self.points0.double())
         return x

@@ -53,6 +53,9 @@ class Observation:
     names: list[str] = field(default_factory=list)  # body names
     truth: dict | None = None  # synthetic scenes: the effects, materials and initial velocities used
     mix: np.ndarray | None = None  # [P, K] the tracks' rigid-motion weights (module docstring); None: points
+    # (m) how finely the points describe each body's extent: a face is known to ± half of it (a fitted run: the
+    # voxel its particles filled the bodies at); 0: the points are the material itself (a simulation's particles)
+    shape_resolution: float = 0.0
 
     def __post_init__(self):
         self.times = np.asarray(self.times, dtype=np.float64).reshape(-1)
@@ -84,6 +87,9 @@ class Observation:
         self.hi = tuple(float(v) for v in self.hi)
         if not self.names:
             self.names = [f"body {b}" for b in range(self.bodies)]
+        self.shape_resolution = float(self.shape_resolution)
+        if not (np.isfinite(self.shape_resolution) and self.shape_resolution >= 0):
+            raise CausalGSError(f"observation: shape_resolution = {self.shape_resolution} must be a length >= 0 (m)")
         if self.mix is not None:
             self.mix = np.asarray(self.mix, dtype=np.float64)
             if self.mix.ndim != 2 or self.mix.shape[0] != P or self.mix.shape[1] < 1:
@@ -115,7 +121,7 @@ class Observation:
                   observed=np.int64(self.observed), lo=np.array(self.lo), hi=np.array(self.hi),
                   density=np.float64(self.density), ground=np.float64(np.nan if self.ground is None else self.ground),
                   noise=np.float64(np.nan if self.noise is None else self.noise), names=np.array(self.names),
-                  **extra)  # fmt: skip
+                  shape_resolution=np.float64(self.shape_resolution), **extra)  # fmt: skip
 
 
 def _json(obj) -> str:
@@ -152,6 +158,7 @@ def load_observation(path) -> Observation:
             density=float(d.get("density", 1000.0)), ground=opt("ground"), noise=opt("noise"),
             names=[str(s) for s in d["names"]] if "names" in d else [],
             truth=json.loads(str(d["truth_json"])) if "truth_json" in d else None, mix=d.get("mix"),
+            shape_resolution=float(d.get("shape_resolution", 0.0)),
         )  # fmt: skip
     except CausalGSError as e:
         raise CausalGSError(f"{path}: {e}") from None
@@ -205,14 +212,17 @@ def polar(H: torch.Tensor, iterations: int = 30) -> torch.Tensor:
     return X
 
 
-def rigid_projection(x: torch.Tensor, x0: torch.Tensor, mix: torch.Tensor, vol: torch.Tensor) -> torch.Tensor:
+def rigid_projection(x: torch.Tensor, x0: torch.Tensor, mix: torch.Tensor, vol: torch.Tensor,
+                     at: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
     """Positions ``x [T, P, 3]`` of points that started at ``x0 [P, 3]`` seen through a lens of blended rigid motions:
     for every frame and pattern k, the rotation and translation (R_k, c_k) that best fit the points' motion in the
     least-squares sense weighted by mix[:, k]·vol (Kabsch: R_k the rotation factor of the weighted cross-covariance),
     and every point placed at Σ_k mix_ik (R_k (x0_i − c0_k) + c_k). Where every point belongs to one pattern (as
     a fit's segmentation ends: on the toss landing 95% of the particles hold over 0.99999 of their weight in one
     pattern) this is the least-squares fit of the tracks' motion model and a rigid motion per pattern is returned
-    as it is; points shared between patterns get the blend of the patterns' own fits. Differentiable in ``x``."""
+    as it is; points shared between patterns get the blend of the patterns' own fits. Differentiable in ``x``.
+    ``at`` [P, 3]: the rest positions the fitted motions carry instead of ``x0`` (the measured points, where the
+    simulated material started from another shape)."""
     w = mix * vol[:, None]  # [P, K]
     W = w.sum(0)  # [K]
     c0 = (w.T @ x0) / W[:, None]  # [K, 3]
@@ -220,6 +230,8 @@ def rigid_projection(x: torch.Tensor, x0: torch.Tensor, mix: torch.Tensor, vol: 
     d0 = x0[:, None, :] - c0[None]  # [P, K, 3]
     H = torch.einsum("pk,tpi,pkj->tkij", w, x, d0)  # Σ w (x − c)(x0 − c0)ᵀ, as Σ w d0 = 0
     R = polar(H)  # [T, K, 3, 3]
+    if at is not None:
+        d0 = at[:, None, :] - c0[None]
     fit = torch.einsum("tkij,pkj->tpki", R, d0) + c[:, None]  # [T, P, K, 3]
     return torch.einsum("pk,tpki->tpi", mix, fit)
 

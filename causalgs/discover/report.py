@@ -128,8 +128,11 @@ def _gap(gap) -> str:
 
 
 def _future_floor(report: dict) -> str:
-    return (f"the floor {_mm(report['floor_rms_m'])} and the fit window's noise carried forward "
-            f"{_mm(report['predictive_rms_m'])}")
+    noise = f"the fit window's noise carried forward {_mm(report['predictive_rms_m'])}"
+    if not report.get("extent_rms_m"):
+        return f"the floor {_mm(report['floor_rms_m'])} and {noise}"
+    return (f"the floor {_mm(report['floor_rms_m'])}, {noise}, and the bodies' extent, known to "
+            f"± {_mm(report['shape_resolution_m'] / 2)} a face, carried forward {_mm(report['extent_rms_m'])}")
 
 
 def markdown(report: dict) -> str:
@@ -155,8 +158,10 @@ def markdown(report: dict) -> str:
                                 for p in d["params"] if src["se_rest_shape"].get(p) is not None)  # fmt: skip
                 starts = src.get("starts_within")
                 L.append(f"  - interval (95%) from two sources, standard errors: {ses} (the residuals' block "
-                         f"bootstrap, then the rest shape's error of {_mm(src['rest_shape_error_m'])} carried "
-                         "through the fit)" + ("" if starts is None else
+                         f"bootstrap, then the rest shape's error of {_mm(src['rest_shape_error_m'])}"
+                         + (f" and the bodies' extent known to ± {_mm(src['shape_resolution_m'] / 2)} a face"
+                            if src.get("shape_resolution_m") else "")
+                         + " carried through the fit)" + ("" if starts is None else
                                                f"; {starts} refit start(s) within the profile threshold"))  # fmt: skip
             for r in d.get("runners_up", []):
                 if r["passed"]:
@@ -241,6 +246,10 @@ def markdown(report: dict) -> str:
                      "through the same lens: every rollout is replaced by the rigid motion per pattern that fits it "
                      "best. A bounce, a slide, a spin or a drag is compared in full; a body's deformation within a "
                      "pattern (an elastic wobble) is in neither the measurement nor the comparison.")  # fmt: skip
+        if report.get("shape_resolution_m"):
+            L.append(f"The run filled its bodies with particles at {_mm(report['shape_resolution_m'])}, so a body's "
+                     f"faces are known to ± {_mm(report['shape_resolution_m'] / 2)}; a landing's bounce depends on "
+                     "them, and the held-out floor and the intervals carry that uncertainty forward.")  # fmt: skip
         if tr.get("pixel_m"):
             L.append(f"A pixel spans {_mm(tr['pixel_m'])} at the bodies; the noise credited to the measurement, "
                      f"{_mm(report['noise'])} per coordinate, is at least a quarter of it (tracking errs smoothly "

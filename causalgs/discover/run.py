@@ -67,6 +67,7 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
                "tracking": ("refined" if base.get("tracking", {}).get("refined") else "kinematic") if "run" in base
                else None,
                "lens": None if obs.mix is None else f"rigid per motion pattern ({obs.mix.shape[1]})",
+               "shape_resolution_m": obs.shape_resolution,
                "config": dataclasses.asdict(cfg), "box": [list(obs.lo), list(obs.hi)]}  # fmt: skip
     if (out / "report.json").is_file() and not (out / "progress.json").is_file() and not resume:
         raise CausalGSError(f"{out} already holds a discovery report: choose another --out")

@@ -224,6 +224,13 @@ def test_rigid_projection_is_the_weighted_kabsch_fit_with_finite_gradients():
     xr = np.stack([sum(mix[:, [k]] * (x0 @ _turns(t, 2)[k].T + 0.02 * k) for k in range(2)) for t in range(3)])
     back = rigid_projection(*(torch.tensor(a) for a in (xr, x0, mix, vol))).numpy()
     assert np.abs(back - xr).max() < 1e-12
+    # the fitted motions carried to other rest points: a material of another extent moving rigidly moves them rigidly
+    c0 = np.average(x0, 0, vol)
+    wide = c0 + (x0 - c0) * np.array([1.1, 0.95, 1.2])
+    xm = np.stack([(wide - c0) @ R[t].T + c0 + 0.01 * t for t in range(3)])
+    carried = rigid_projection(*(torch.tensor(a) for a in (xm, wide, one, vol)), at=torch.tensor(x0)).numpy()
+    expect = np.stack([(x0 - c0) @ R[t].T + c0 + 0.01 * t for t in range(3)])
+    assert np.abs(carried - expect).max() < 1e-12
     # float64 gradients, also where the points' covariance is isotropic (an SVD's gradient is not finite there)
     corners = torch.tensor([[i, j, k] for i in (-1.0, 1.0) for j in (-1.0, 1.0) for k in (-1.0, 1.0)]) * 0.05
     corners = corners.double()
@@ -250,10 +257,76 @@ def test_an_observation_carries_its_lens(tmp_path):
     raw[:, 0], raw[:, 2] = 0.7, 0.7  # an empty pattern is dropped and the rest renormalised
     obs.mix = lens(raw)
     assert obs.mix.shape == (P, 2) and np.allclose(obs.mix, 0.5)
+    obs.shape_resolution = 0.0127
     obs.save(tmp_path / "obs.npz")
-    assert np.array_equal(load_observation(tmp_path / "obs.npz").mix, obs.mix)
+    back = load_observation(tmp_path / "obs.npz")
+    assert np.array_equal(back.mix, obs.mix) and back.shape_resolution == 0.0127
     with pytest.raises(CausalGSError, match="no motion pattern"):
         lens(np.zeros((P, 2)))
+    for bad in (-0.01, float("nan")):
+        with pytest.raises(CausalGSError, match="shape_resolution") as e:
+            Observation(times=obs.times, x=obs.x, vol=obs.vol, body=obs.body, observed=6, lo=obs.lo, hi=obs.hi,
+                        shape_resolution=bad)  # fmt: skip
+        assert "\n" not in str(e.value)
+
+
+def test_extent_draws_move_each_face_within_the_resolution():
+    """Each body's faces along its principal axes move by at most half the resolution, the points between stretched
+    with them; bodies are drawn apart."""
+    from causalgs.discover.search import extent_draw
+
+    a = _cube(n=5, side=0.2, centre=(0.0, 0.0, 0.3)) * np.array([1.0, 0.8, 0.6])  # principal axes x, y, z
+    b = _cube(n=4, side=0.1, centre=(0.5, 0.0, 0.3))
+    x0 = np.concatenate([a, b])
+    body = np.repeat([0, 1], [len(a), len(b)])
+    vol = np.ones(len(x0))
+    res = 0.02
+    moved = []
+    for seed in range(20):
+        x = extent_draw(x0, body, vol, res, np.random.default_rng(seed))
+        for k in (0, 1):
+            p, q = x0[body == k], x[body == k]
+            for ax in range(3):
+                assert abs(q[:, ax].min() - p[:, ax].min()) <= res / 2 + 1e-12
+                assert abs(q[:, ax].max() - p[:, ax].max()) <= res / 2 + 1e-12
+                # affine along the axis: the order and the even spacing of a lattice row are kept
+                lo, hi = p[:, ax].min(), p[:, ax].max()
+                f = (p[:, ax] - lo) / (hi - lo)
+                assert np.allclose(q[:, ax], q[:, ax].min() + f * (q[:, ax].max() - q[:, ax].min()), atol=1e-12)
+        moved.append(x)
+    lo_a = np.array([m[body == 0, 2].min() for m in moved]) - a[:, 2].min()
+    lo_b = np.array([m[body == 1, 2].min() for m in moved]) - b[:, 2].min()
+    assert lo_a.std() > res / 8 and abs(np.corrcoef(lo_a, lo_b)[0, 1]) < 0.6  # drawn, and apart
+    assert np.array_equal(extent_draw(x0, body, vol, 0.0, np.random.default_rng(0)), x0)
+
+
+def test_the_extent_moves_a_bounce_and_not_a_flight():
+    """Through the lens, a body of another extent in free flight moves its measured points as before (a rigid
+    motion does not depend on the shape), so the extent adds nothing to the held-out floor; a bounce starts when
+    the bottom face touches the ground, so there it does."""
+    from causalgs import _ti
+    from causalgs.discover.calibrate import Fit
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.search import _state, extent_rms
+
+    _ti.init("cpu", "float32")
+    out = {}
+    for name, centre, v in (("flight", (0.0, 0.0, 0.5), (0.4, -0.2, 1.0)), ("bounce", (0.0, 0.0, 0.1), (0.4, 0, -1.0))):
+        x0 = _cube(n=4, centre=centre)
+        t = np.arange(14) / 60.0
+        obs = Observation(times=t, x=np.repeat(x0[None], len(t), 0), vol=np.full(len(x0), 0.12**3 / len(x0)),
+                          body=np.zeros(len(x0)), observed=10, lo=(-0.6, -0.6, -0.1), hi=(0.6, 0.6, 1.1),
+                          names=["cube"], mix=np.ones((len(x0), 1)), shape_resolution=0.02)  # fmt: skip
+        m = PhysicsModel(obs, "gravity;ground:mu=0.3;walls", res=16)
+        th = m.initial(E=3e4)
+        for i, k in enumerate(m.knobs):
+            if k.kind == "u":
+                th[i] = v[k.index]
+        with torch.no_grad():
+            obs.x[1:] = m.rollout(th).numpy()  # the model's own motion is the measurement
+        out[name] = extent_rms(_state(m, Fit(th, 0.0, 0, 3e4)))
+        assert np.allclose(m.x0.numpy(), obs.x[0]) and m.points0 is m.x0  # the rest shape is put back
+    assert out["bounce"] > 2e-4 and out["flight"] < 1e-3 * out["bounce"], out
 
 
 def test_candidates_apply_only_where_the_base_lacks_them():
