@@ -364,9 +364,10 @@ def _future_floor(report: dict, state: State, floor: float, cfg: DiscoverConfig)
     obs = state.model.obs
     fr = fit_frames(state.model)
     fut = list(range(obs.observed, len(obs.times)))
-    J_all = sensitivities(state.model, state.fit.theta, fr + fut) if fut else None
-    spread = _spread(state.model, J_all, floor, cfg) if fut else 0.0
-    extent = extent_rms(state, J_all) if fut else 0.0
+    spread = extent = 0.0
+    if fut:
+        J_all = sensitivities(state.model, state.fit.theta, fr + fut)
+        spread, extent = _spread(state.model, J_all, floor, cfg), extent_rms(state, J_all)
     report["future_floor_rms_m"] = math.sqrt(floor**2 + spread**2 + extent**2)
     report["predictive_rms_m"] = spread
     report["extent_rms_m"] = extent
@@ -387,14 +388,16 @@ def _uncertainty(state: State, params, cfg: DiscoverConfig, rest_sigma: float = 
     J_all = sensitivities(model, th, fr + fut)  # the held-out rows cost no extra rollout
     n_fit = len(fr) * obs.points * 3
     J, J_fut = J_all[:n_fit], J_all[n_fit:]
-    if floor > 0:
-        state.spread = _spread(model, J_all, floor, cfg)
-        state.extent = extent_rms(state, J_all)
     r = (obs.x[fr] - state.sim[[f - 1 for f in fr]]).reshape(-1) / UNIT
     dev = block_bootstrap(J, r, len(fr), cfg.gate)  # [S, k] in internal units
     rest, rest_fut = np.zeros((0, len(th))), None
     if rest_sigma > 0 or (obs.shape_resolution > 0 and obs.mix is not None):
         rest, rest_fut = rest_shape_draws(model, th, J, rest_sigma, fut, J_fut, extent=obs.shape_resolution)
+    if floor > 0:
+        state.spread = _spread(model, J_all, floor, cfg)
+        # without the rest shape's own error those draws are the extent's alone: no second set of rollouts
+        own = rest_sigma <= 0 and rest_fut is not None and len(rest_fut) and fut
+        state.extent = float(np.sqrt((rest_fut**2).mean())) * UNIT if own else extent_rms(state, J_all)
     if fut:  # each resample's fit, carried to the held-out frames (linearised), with a rest-shape draw in turn
         miss = (state.sim[[f - 1 for f in fut]] - obs.x[fut]).reshape(-1) / UNIT
         moved = miss[None] + (dev - dev.mean(0)) @ J_fut.T
@@ -719,7 +722,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
             "interval_sources": {"se_noise": {p: unc[p].get("se_noise") for p in c.params},
                                  "se_rest_shape": {p: unc[p].get("se_rest_shape") for p in c.params},
                                  "rest_shape_error_m": rest_sigma,
-                                 "shape_resolution_m": obs.shape_resolution if obs.mix is not None else 0.0,
+                                 "shape_resolution_m": report["shape_resolution_m"],
                                  "starts_within": min(unc[p]["starts_within"] for p in c.params)},
             "evidence": {"signature": c.driver, "signature_share": sig.get(c.driver),
                          "future_drop": v.checks["future_drop"], "delta_bic": v.checks["delta_bic"],
