@@ -411,6 +411,34 @@ def test_gate_statistics():
     assert not no_future.passed
 
 
+def test_the_held_out_floor_follows_the_tracks_own_error():
+    from causalgs.discover.search import State, held_out_floor
+
+    def state(train_mm, spread_mm, extent_mm=0.0):
+        return State(None, None, train=(train_mm / 10) ** 2, future=float("nan"), sim=None,
+                     spread=spread_mm / 1000, extent=extent_mm / 1000)  # fmt: skip
+
+    floor = 1.57e-3  # m per coordinate: the noise credited to the tracks
+    cfg = GateConfig()
+    # the video-level flight with a pull towards a point: a uniform force fits the window at 0.60 mm and misses the
+    # held-out frames by 3.90 mm; with the spread 0.84 mm a correct model would miss them by sqrt(0.60² + 0.84²)
+    stand_in = state(0.598, 0.84)
+    assert held_out_floor(stand_in, floor) == pytest.approx((0.598**2 + 0.84**2) / 100)
+    far = dict(base_train=20.0, base_future=1.9, best_train=0.598**2 / 100, k_new=1, n_eff=300, k_base=8,
+               z={"force.b": 29.8}, cfg=cfg, noise=(floor / 0.01) ** 2)  # fmt: skip
+    v = judge(train=stand_in.train, future=0.390**2, future_noise=held_out_floor(stand_in, floor), **far)
+    assert not v.passed and v.checks["future_rms_ratio_to_floor"] == pytest.approx(3.78, abs=0.01)
+    # against the credited noise instead it would have passed (2.2×): the credit is not the tracks' error
+    old = judge(train=stand_in.train, future=0.390**2, future_noise=(0.1573**2 + 0.084**2), **far)
+    assert old.passed
+    # the true push on its own flight: 0.48 mm on the window, 0.69 mm held out
+    true = state(0.482, 0.79)
+    assert judge(train=true.train, future=0.0685**2, future_noise=held_out_floor(true, floor), **far).passed
+    # a window fitted worse than the floor does not excuse more than the floor; the extent adds in quadrature
+    assert held_out_floor(state(3.0, 0.0), floor) == pytest.approx((floor / 0.01) ** 2)
+    assert held_out_floor(state(1.0, 0.0, 2.0), floor) == pytest.approx((1.0 + 4.0) / 100)
+
+
 def test_rigid_floor_keeps_point_noise_and_removes_rigid_misfit():
     """The floor a correct model can reach: a residual made of a rigid drift per frame (what a missing force leaves)
     is removed; independent per-point noise and a per-point start offset (a noisy rest shape) are kept."""
