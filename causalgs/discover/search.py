@@ -390,6 +390,17 @@ def held_out_floor(state: State, floor: float) -> float:
     return track + ((state.spread or 0.0) ** 2 + (state.extent or 0.0) ** 2) / UNIT**2
 
 
+NO_SPREAD = 1e-9  # a bootstrap spread below this fraction of a parameter's size is none (rounding)
+
+
+def z_score(value: float, off: float, se: float) -> float:
+    """Standard errors from ``value`` to ``off``. No spread means the data does not move the parameter (no
+    sensitivity, or flat against a bound, as a drag gone to zero where the residual asks for a push: its spread
+    was 1e-22 of its size, 10¹⁵ "standard errors"): nothing is known about it, so 0, not significant."""
+    d = abs(value - off)
+    return d / se if se > NO_SPREAD * d and se > 0 else 0.0
+
+
 def _uncertainty(state: State, params, cfg: DiscoverConfig, rest_sigma: float = 0.0, floor: float = 0.0) -> dict:
     """Bootstrap intervals and z-scores of ``params`` at the refit (see :mod:`causalgs.discover.gate`).
     ``rest_sigma`` > 0 (m): the rest shape's own error, whose effect (:func:`rest_shape_draws`) is added to the
@@ -443,9 +454,7 @@ def _uncertainty(state: State, params, cfg: DiscoverConfig, rest_sigma: float = 
         se_z = float(noise_samples.std())
         off = 0.0 if knob.lower is not None or knob.offset == 0.0 else knob.offset
         out[p] = {"value": vals[p], "se": se, "interval": [float(lo), float(hi)],
-                  # No spread at all means the data does not move the parameter (no sensitivity, or pinned at a
-                  # bound): nothing is known about it, so it is not significant.
-                  "z": abs(vals[p] - off) / se_z if se_z > 0 else 0.0, "samples": noise_samples - vals[p],
+                  "z": z_score(vals[p], off, se_z), "samples": noise_samples - vals[p],
                   **extra}  # fmt: skip
     return out
 

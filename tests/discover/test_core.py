@@ -439,6 +439,15 @@ def test_the_held_out_floor_follows_the_tracks_own_error():
     assert held_out_floor(state(1.0, 0.0, 2.0), floor) == pytest.approx((1.0 + 4.0) / 100)
 
 
+def test_a_parameter_the_data_does_not_move_is_not_significant():
+    from causalgs.discover.search import z_score
+
+    assert z_score(2.36, 0.0, 0.0793) == pytest.approx(29.76, abs=0.01)
+    assert z_score(3.03e-6, 0.0, 4.2e-22) == 0.0  # a drag flat against zero: rounding, not a measurement
+    assert z_score(0.5, 0.0, 0.0) == 0.0
+    assert z_score(0.0, 0.0, 0.0) == 0.0
+
+
 def test_rigid_floor_keeps_point_noise_and_removes_rigid_misfit():
     """The floor a correct model can reach: a residual made of a rigid drift per frame (what a missing force leaves)
     is removed; independent per-point noise and a per-point start offset (a noisy rest shape) are kept."""
