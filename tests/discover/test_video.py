@@ -43,3 +43,23 @@ def test_synth_fit_discover_on_a_hidden_drag(tmp_path):
     assert len(tr["frames"]) == 36 and rep["noise"] >= 0.25 * tr["pixel_m"] - 1e-12
     for name in ("report.md", "error.png", "residuals.png", "paths.png", "images.png", "progress.json", "config.toml"):
         assert (out / name).is_file(), name
+
+
+def test_a_pull_outside_the_catalogue_is_not_given_a_name(tmp_path):
+    """A pull towards a point (a = k·(c − x)), which the catalogue does not hold: on the fit window a uniform force
+    mimics it (0.60 mm against 0.48 mm for a true push's own refit on seed 0), but it misses the held-out frames by
+    3.8× what a correct model would, so no name is given."""
+    data, run, out = tmp_path / "fly", tmp_path / "run", tmp_path / "discover"
+    r = CliRunner().invoke(cli, ["synth", "toss", "--out", str(data), "--effects",
+                                 "gravity;ground:mu=0.3;walls;attractor:k=10.0:c=0.0,0.0,0.3", "--fps", "120",
+                                 "--frames", "48", "--reference-res", "43"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(cli, ["fit", str(data), "--out", str(run)])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(cli, ["discover", str(run), "--out", str(out), "--json"])
+    assert r.exit_code == 0, r.output
+    rep = json.loads(r.output)
+    assert rep["verdict"] == "unexplained discrepancy", (rep["verdict"], rep["discovered"])
+    assert not rep["discovered"] and not rep["ambiguous"]
+    force = next(x for x in rep["rounds"][0]["refits"] if x["effect"] == "force")
+    assert not force["passed"] and any("held-out" in why for why in force["reasons"]), force["reasons"]
