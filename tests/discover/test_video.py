@@ -15,17 +15,22 @@ pytestmark = pytest.mark.slow
 C_TRUE = 3.0
 
 
-def test_synth_fit_discover_on_a_hidden_drag(tmp_path):
+def synth_fit_discover(tmp_path, effects: str) -> dict:
+    """The README's three commands on a 48-frame flight simulated with ``effects``; the report's JSON."""
     data, run, out = tmp_path / "fly", tmp_path / "run", tmp_path / "discover"
-    r = CliRunner().invoke(cli, ["synth", "toss", "--out", str(data), "--effects",
-                                 f"gravity;ground:mu=0.3;walls;linear_drag:c={C_TRUE}", "--fps", "120", "--frames",
-                                 "48", "--reference-res", "43"])  # fmt: skip
+    r = CliRunner().invoke(cli, ["synth", "toss", "--out", str(data), "--effects", effects, "--fps", "120",
+                                 "--frames", "48", "--reference-res", "43"])  # fmt: skip
     assert r.exit_code == 0, r.output
     r = CliRunner().invoke(cli, ["fit", str(data), "--out", str(run)])
     assert r.exit_code == 0, r.output
     r = CliRunner().invoke(cli, ["discover", str(run), "--out", str(out), "--json"])
     assert r.exit_code == 0, r.output
-    rep = json.loads(r.output)
+    return json.loads(r.output)
+
+
+def test_synth_fit_discover_on_a_hidden_drag(tmp_path):
+    out = tmp_path / "discover"
+    rep = synth_fit_discover(tmp_path, f"gravity;ground:mu=0.3;walls;linear_drag:c={C_TRUE}")
     assert "linear_drag" not in rep["config"]["spec"]  # the model's physics lacks the drag
     # The drag must be named (alone, or in an ambiguity set with its confusable twin), with its rate near the truth,
     # and the repair must cut the held-out error at least in half, on positions and on held-out cameras' images.
@@ -49,16 +54,7 @@ def test_a_pull_outside_the_catalogue_is_not_given_a_name(tmp_path):
     """A pull towards a point (a = k·(c − x)), which the catalogue does not hold: on the fit window a uniform force
     mimics it (0.60 mm against 0.48 mm for a true push's own refit on seed 0), but it misses the held-out frames by
     3.8× what a correct model would, so no name is given."""
-    data, run, out = tmp_path / "fly", tmp_path / "run", tmp_path / "discover"
-    r = CliRunner().invoke(cli, ["synth", "toss", "--out", str(data), "--effects",
-                                 "gravity;ground:mu=0.3;walls;attractor:k=10.0:c=0.0,0.0,0.3", "--fps", "120",
-                                 "--frames", "48", "--reference-res", "43"])  # fmt: skip
-    assert r.exit_code == 0, r.output
-    r = CliRunner().invoke(cli, ["fit", str(data), "--out", str(run)])
-    assert r.exit_code == 0, r.output
-    r = CliRunner().invoke(cli, ["discover", str(run), "--out", str(out), "--json"])
-    assert r.exit_code == 0, r.output
-    rep = json.loads(r.output)
+    rep = synth_fit_discover(tmp_path, "gravity;ground:mu=0.3;walls;attractor:k=10.0:c=0.0,0.0,0.3")
     assert rep["verdict"] == "unexplained discrepancy", (rep["verdict"], rep["discovered"])
     assert not rep["discovered"] and not rep["ambiguous"]
     force = next(x for x in rep["rounds"][0]["refits"] if x["effect"] == "force")
