@@ -82,8 +82,9 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     catalogue is screened with one sensitivity rollout; the best are refitted jointly with the base through the
     differentiable MPM; a gate accepts one only if the held-out error drops, BIC (with an effective sample size)
     improves, its parameters are significant (block bootstrap) and inside their ranges, and the refit reaches the
-    noise floor on the fit window and stays within 3x of it on the held-out frames. Among passers, the held-out
-    frames choose first and BIC among those they do not tell apart.
+    noise floor on the fit window and misses the held-out frames by at most 3x what a correct model would (its own
+    window error, at most the floor, with the window's noise and the bodies' extent carried forward). Among
+    passers, the held-out frames choose first and BIC among those they do not tell apart.
 
     \b
     Verdicts: the named effect(s) with their law and interval; "ambiguous" (the data does not separate two
