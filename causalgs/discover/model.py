@@ -283,8 +283,9 @@ class PhysicsModel:
         return eff.spec()
 
     # -- rollout ----------------------------------------------------------------------------------------------------
-    def rollout(self, theta: torch.Tensor, frames=None) -> torch.Tensor:
-        """Positions [len(frames), P, 3] (float64) at the observation's ``frames`` (default all after the first)."""
+    def rollout(self, theta: torch.Tensor, frames=None, *, lensed: bool = True) -> torch.Tensor:
+        """Positions [len(frames), P, 3] (float64) at the observation's ``frames`` (default all after the first), seen
+        through the observation's lens (:meth:`see`) unless ``lensed`` is False (the simulated material itself)."""
         obs = self.obs
         frames = list(range(1, len(obs.times))) if frames is None else [int(f) for f in frames]
         if not frames or min(frames) < 1:
@@ -300,7 +301,11 @@ class PhysicsModel:
         times = [float(obs.times[f] - obs.times[0]) for f in frames]
         x, _, _ = simulate(self.sim, self.x0, u["v0"].to(dt), u["E"].to(dt), u["nu"].to(dt), density, times,
                            u["params"].to(dt))  # fmt: skip
-        x = x.double()
-        if obs.mix is not None:  # compared through the measurement's lens (observation.rigid_projection)
-            x = rigid_projection(x, self.x0.double(), self._mix, self._vol, at=self.points0.double())
-        return x
+        return self.see(x.double()) if lensed else x.double()
+
+    def see(self, x: torch.Tensor) -> torch.Tensor:
+        """Simulated positions [F, P, 3] as the measurement sees them: through its lens where it has one
+        (:func:`~causalgs.discover.observation.rigid_projection`), else as they are."""
+        if self.obs.mix is None:
+            return x
+        return rigid_projection(x, self.x0.double(), self._mix, self._vol, at=self.points0.double())

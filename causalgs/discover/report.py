@@ -128,11 +128,15 @@ def _gap(gap) -> str:
 
 
 def _future_floor(report: dict) -> str:
-    noise = f"the fit window's noise carried forward {_mm(report['predictive_rms_m'])}"
-    if not report.get("extent_rms_m"):
-        return f"the floor {_mm(report['floor_rms_m'])} and {noise}"
-    return (f"the floor {_mm(report['floor_rms_m'])}, {noise}, and the bodies' extent, known to "
-            f"± {_mm(report['shape_resolution_m'] / 2)} a face, carried forward {_mm(report['extent_rms_m'])}")
+    parts = [f"the floor {_mm(report['floor_rms_m'])}",
+             f"the fit window's noise carried forward {_mm(report['predictive_rms_m'])}"]
+    if report.get("extent_rms_m"):
+        parts.append(f"the bodies' extent, known to ± {_mm(report['shape_resolution_m'] / 2)} a face, carried "
+                     f"forward {_mm(report['extent_rms_m'])}")
+    if report.get("blind_rms_m"):
+        parts.append(f"the rigid tracks' error where the bodies deform (an impact), carried forward "
+                     f"{_mm(report['blind_rms_m'])}")
+    return ", ".join(parts[:-1]) + (", and " if len(parts) > 2 else " and ") + parts[-1]
 
 
 def markdown(report: dict) -> str:

@@ -329,6 +329,77 @@ def test_the_extent_moves_a_bounce_and_not_a_flight():
     assert out["bounce"] > 2e-4 and out["flight"] < 1e-3 * out["bounce"], out
 
 
+def test_the_lens_blind_spot_is_the_departure_from_the_best_rigid_motion():
+    """What rigid tracks cannot show is the simulated material's departure from the rigid motion that fits it best
+    (weighted Kabsch, against scipy): nothing in a free flight, millimetres at a bounce; carried to the held-out
+    frames it adds to what a correct model would miss them by only where the bodies deform."""
+    from scipy.spatial.transform import Rotation
+
+    from causalgs import _ti
+    from causalgs.discover.calibrate import Fit
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.screen import sensitivities
+    from causalgs.discover.search import _state, blind_rms, lens_blind
+
+    _ti.init("cpu", "float32")
+    out = {}
+    for name, centre, v in (("flight", (0.0, 0.0, 0.5), (0.4, -0.2, 1.0)), ("bounce", (0.0, 0.0, 0.1), (0.4, 0, -1.0))):
+        x0 = _cube(n=4, centre=centre)
+        t = np.arange(14) / 60.0
+        vol = np.linspace(1.0, 2.0, len(x0)) * 0.12**3 / len(x0)
+        obs = Observation(times=t, x=np.repeat(x0[None], len(t), 0), vol=vol, body=np.zeros(len(x0)), observed=10,
+                          lo=(-0.6, -0.6, -0.1), hi=(0.6, 0.6, 1.1), names=["cube"], mix=np.ones((len(x0), 1)))
+        m = PhysicsModel(obs, "gravity;ground:mu=0.3;walls", res=16)
+        th = m.initial(E=3e4)
+        for i, k in enumerate(m.knobs):
+            if k.kind == "u":
+                th[i] = v[k.index]
+        with torch.no_grad():
+            obs.x[1:] = m.rollout(th).numpy()
+            raw = m.rollout(th, lensed=False).numpy()
+        st = _state(m, Fit(th, 0.0, 0, 3e4))
+        blind = lens_blind(st)
+        assert blind.shape == (13, 1)
+        want = []
+        for f in range(13):  # the plain reference: scipy's weighted rotation fit about the weighted centroids
+            c0, c1 = np.average(x0, 0, vol), np.average(raw[f], 0, vol)
+            rot, _ = Rotation.align_vectors(raw[f] - c1, x0 - c0, weights=vol)
+            fitted = rot.apply(x0 - c0) + c1
+            want.append(np.sqrt(((raw[f] - fitted) ** 2).mean()))
+        assert np.allclose(blind[:, 0], want, atol=2e-6), (blind[:, 0], want)
+        J_all = sensitivities(m, th, list(range(1, 14)))
+        out[name] = (blind.max(), blind_rms(st, J_all))
+    assert out["flight"][0] < 1e-5 and out["bounce"][0] > 1e-3, out
+    assert out["flight"][1] < 1e-5 and out["bounce"][1] > 1e-4, out
+
+
+def test_the_blind_spot_is_carried_through_the_linearised_refit(monkeypatch):
+    """Tracks' errors the window's parameters cannot absorb reach the held-out frames as they are; a translation
+    error constant over the whole window is absorbed by a parameter that translates the body."""
+    from types import SimpleNamespace
+
+    from causalgs.discover import search
+
+    P, T, observed = 5, 9, 6
+    obs = SimpleNamespace(times=np.arange(T) / 60.0, observed=observed, points=P, bodies=1, body=np.zeros(P, int),
+                          mix=np.ones((P, 1)))  # fmt: skip
+    st = SimpleNamespace(model=SimpleNamespace(obs=obs, inert=1e-6))
+    monkeypatch.setattr(search, "live", lambda model, J: np.abs(J).max(0) > 0)
+    dep = np.full((T - 1, 1), 0.002)  # 2 mm at every frame
+    monkeypatch.setattr(search, "lens_blind", lambda state: dep)
+    rows = (T - 1) * P * 3
+    # no parameter: the held-out tracks' own error, 2 mm per coordinate
+    assert search.blind_rms(st, np.zeros((rows, 1))) == pytest.approx(0.002, rel=0.2)
+    # a free translation of the body absorbs an error whose direction never changes (one block over every frame) ...
+    J = np.tile(np.eye(3), (rows // 3, 1))
+    assert search.blind_rms(st, J, block=T) < 1e-9
+    # ... but not one redrawn every frame
+    assert search.blind_rms(st, J, block=1) > 0.001
+    # nothing deforms: nothing is carried
+    dep = np.zeros((T - 1, 1))
+    assert search.blind_rms(st, J, block=1) == 0.0
+
+
 def test_candidates_apply_only_where_the_base_lacks_them():
     base = Effects.from_spec("gravity;ground:mu=0.4;walls")
     keys = {c.key for c in select() if c.applies(base, ())}
@@ -437,6 +508,10 @@ def test_the_held_out_floor_follows_the_tracks_own_error():
     # a window fitted worse than the floor does not excuse more than the floor; the extent adds in quadrature
     assert held_out_floor(state(3.0, 0.0), floor) == pytest.approx((floor / 0.01) ** 2)
     assert held_out_floor(state(1.0, 0.0, 2.0), floor) == pytest.approx((1.0 + 4.0) / 100)
+    # ... and so does the rigid tracks' error where the bodies deform
+    deformed = state(1.0, 0.0, 2.0)
+    deformed.blind = 2e-3
+    assert held_out_floor(deformed, floor) == pytest.approx((1.0 + 4.0 + 4.0) / 100)
 
 
 def test_a_parameter_the_data_does_not_move_is_not_significant():
