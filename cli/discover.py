@@ -83,7 +83,8 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     differentiable MPM; a gate accepts one only if the held-out error drops, BIC (with an effective sample size)
     improves, its parameters are significant (block bootstrap) and inside their ranges, and the refit reaches the
     noise floor on the fit window and misses the held-out frames by at most 3x what a correct model would (its own
-    window error, at most the floor, with the window's noise and the bodies' extent carried forward). Among
+    window error, at most the floor, with the window's noise, the bodies' extent and the rigid tracks' error where
+    the bodies deform carried forward). Among
     passers, the held-out frames choose first and BIC among those they do not tell apart.
 
     \b
