@@ -138,6 +138,8 @@ def _disagreement(state: State, obs: Observation, floor: float) -> dict:
         "ground contact": float(np.sqrt(d2[touch].mean())) if touch.any() else None,
         "flight": float(np.sqrt(d2[~touch].mean())) if (~touch).any() else None,
     }
+    if obs.mix is not None:  # where rigid tracks cannot follow the bodies (m per coordinate, per frame after the first)
+        out["blind"] = np.sqrt((lens_blind(state) ** 2).mean(1)).tolist()
     fr = fit_frames(state.model)
     out["signatures"] = current_signatures(state, obs)
     out["residual_force_gain"] = residual_force_gain(state.sim[[f - 1 for f in fr]], obs, fr)

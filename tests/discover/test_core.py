@@ -300,31 +300,43 @@ def test_extent_draws_move_each_face_within_the_resolution():
     assert np.array_equal(extent_draw(x0, body, vol, 0.0, np.random.default_rng(0)), x0)
 
 
-def test_the_extent_moves_a_bounce_and_not_a_flight():
-    """Through the lens, a body of another extent in free flight moves its measured points as before (a rigid
-    motion does not depend on the shape), so the extent adds nothing to the held-out floor; a bounce starts when
-    the bottom face touches the ground, so there it does."""
+def _flight_and_bounce(vol_spread: float = 0.0, **obs_kw) -> dict:
+    """A cube seen through a one-pattern lens, thrown in free flight and onto the ground (16 cells, 60 fps): the
+    model's own motion is the measurement. {name: (state at the true parameters, model, observation)}."""
     from causalgs import _ti
     from causalgs.discover.calibrate import Fit
     from causalgs.discover.model import PhysicsModel
-    from causalgs.discover.search import _state, extent_rms
+    from causalgs.discover.search import _state
 
     _ti.init("cpu", "float32")
     out = {}
     for name, centre, v in (("flight", (0.0, 0.0, 0.5), (0.4, -0.2, 1.0)), ("bounce", (0.0, 0.0, 0.1), (0.4, 0, -1.0))):
         x0 = _cube(n=4, centre=centre)
         t = np.arange(14) / 60.0
-        obs = Observation(times=t, x=np.repeat(x0[None], len(t), 0), vol=np.full(len(x0), 0.12**3 / len(x0)),
-                          body=np.zeros(len(x0)), observed=10, lo=(-0.6, -0.6, -0.1), hi=(0.6, 0.6, 1.1),
-                          names=["cube"], mix=np.ones((len(x0), 1)), shape_resolution=0.02)  # fmt: skip
+        vol = np.linspace(1.0, 1.0 + vol_spread, len(x0)) * 0.12**3 / len(x0)
+        obs = Observation(times=t, x=np.repeat(x0[None], len(t), 0), vol=vol, body=np.zeros(len(x0)), observed=10,
+                          lo=(-0.6, -0.6, -0.1), hi=(0.6, 0.6, 1.1), names=["cube"], mix=np.ones((len(x0), 1)),
+                          **obs_kw)  # fmt: skip
         m = PhysicsModel(obs, "gravity;ground:mu=0.3;walls", res=16)
         th = m.initial(E=3e4)
         for i, k in enumerate(m.knobs):
             if k.kind == "u":
                 th[i] = v[k.index]
         with torch.no_grad():
-            obs.x[1:] = m.rollout(th).numpy()  # the model's own motion is the measurement
-        out[name] = extent_rms(_state(m, Fit(th, 0.0, 0, 3e4)))
+            obs.x[1:] = m.rollout(th).numpy()
+        out[name] = (_state(m, Fit(th, 0.0, 0, 3e4)), m, obs)
+    return out
+
+
+def test_the_extent_moves_a_bounce_and_not_a_flight():
+    """Through the lens, a body of another extent in free flight moves its measured points as before (a rigid
+    motion does not depend on the shape), so the extent adds nothing to the held-out floor; a bounce starts when
+    the bottom face touches the ground, so there it does."""
+    from causalgs.discover.search import extent_rms
+
+    out = {}
+    for name, (st, m, obs) in _flight_and_bounce(shape_resolution=0.02).items():
+        out[name] = extent_rms(st)
         assert np.allclose(m.x0.numpy(), obs.x[0]) and m.points0 is m.x0  # the rest shape is put back
     assert out["bounce"] > 2e-4 and out["flight"] < 1e-3 * out["bounce"], out
 
@@ -335,29 +347,14 @@ def test_the_lens_blind_spot_is_the_departure_from_the_best_rigid_motion():
     frames it adds to what a correct model would miss them by only where the bodies deform."""
     from scipy.spatial.transform import Rotation
 
-    from causalgs import _ti
-    from causalgs.discover.calibrate import Fit
-    from causalgs.discover.model import PhysicsModel
     from causalgs.discover.screen import sensitivities
-    from causalgs.discover.search import _state, blind_rms, lens_blind
+    from causalgs.discover.search import blind_rms, lens_blind
 
-    _ti.init("cpu", "float32")
     out = {}
-    for name, centre, v in (("flight", (0.0, 0.0, 0.5), (0.4, -0.2, 1.0)), ("bounce", (0.0, 0.0, 0.1), (0.4, 0, -1.0))):
-        x0 = _cube(n=4, centre=centre)
-        t = np.arange(14) / 60.0
-        vol = np.linspace(1.0, 2.0, len(x0)) * 0.12**3 / len(x0)
-        obs = Observation(times=t, x=np.repeat(x0[None], len(t), 0), vol=vol, body=np.zeros(len(x0)), observed=10,
-                          lo=(-0.6, -0.6, -0.1), hi=(0.6, 0.6, 1.1), names=["cube"], mix=np.ones((len(x0), 1)))
-        m = PhysicsModel(obs, "gravity;ground:mu=0.3;walls", res=16)
-        th = m.initial(E=3e4)
-        for i, k in enumerate(m.knobs):
-            if k.kind == "u":
-                th[i] = v[k.index]
+    for name, (st, m, obs) in _flight_and_bounce(vol_spread=1.0).items():  # unequal volumes: a weighted fit
+        th, x0, vol = st.fit.theta, obs.x[0], obs.vol
         with torch.no_grad():
-            obs.x[1:] = m.rollout(th).numpy()
             raw = m.rollout(th, lensed=False).numpy()
-        st = _state(m, Fit(th, 0.0, 0, 3e4))
         blind = lens_blind(st)
         assert blind.shape == (13, 1)
         want = []

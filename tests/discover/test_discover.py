@@ -283,6 +283,33 @@ def test_the_report_says_the_measurement_was_refined_and_what_it_gained():
     assert "same lens" not in text  # compared point by point
     rep["tracking"]["lens_patterns"] = 2
     assert "each of the run's 2 motion pattern(s) rigidly" in markdown(rep)
+    # where the base model's bodies deform, the rigid tracks cannot follow them: said with the frames
+    assert "depart from their rigid motion" not in markdown(rep)
+    rep["disagreement"]["blind"] = [0.0, 0.0, 0.0004, 0.0051, 0.003, 0.0012]
+    text = markdown(rep)
+    assert "depart from their rigid motion by up to 5.10 mm per coordinate (frame 4; above half of that at frames " \
+           "4–5)" in text, text
+
+
+def test_the_error_plot_shows_the_deformation_the_tracks_cannot_follow(monkeypatch, tmp_path):
+    """error.png draws the base model's departure from rigid motion (per point, as the error curves) where the
+    observation has a lens and the departure shows against the floor."""
+    from causalgs.discover import report as rp
+
+    figs = []
+    monkeypatch.setattr(rp, "_save", lambda fig, path: figs.append(fig))
+    obs = Observation(times=np.arange(5) / 60.0, x=np.zeros((5, 2, 3)), vol=np.ones(2), body=np.zeros(2),
+                      observed=3, lo=(-1, -1, -1), hi=(1, 1, 1))  # fmt: skip
+    rep = _fake_report(None)
+    traj = {"before": np.full((4, 2, 3), 0.01), "after": np.full((4, 2, 3), 0.01)}
+    for blind in (None, [0.0, 0.0, 0.0001, 0.0001], [0.0, 0.0, 0.004, 0.001]):
+        rep["disagreement"]["blind"] = blind
+        rp.plot_error(rep, traj, obs, tmp_path / "error.png")
+    lines = [[ln for ln in fig.axes[0].get_lines() if "departure" in ln.get_label()] for fig in figs]
+    assert not lines[0] and not lines[1]  # none, or far below the floor
+    (curve,) = lines[2]
+    assert np.allclose(curve.get_ydata(), 1000 * np.sqrt(3) * np.array([1e-6, 1e-6, 0.004, 0.001]))
+    assert list(curve.get_xdata()) == [1, 2, 3, 4]
 
 
 def test_the_report_says_when_the_base_was_recalibrated_from_a_refit():
