@@ -152,13 +152,19 @@ def _refit(base: State, s, cfg: DiscoverConfig, journal: Journal, where: str) ->
     c: Candidate = s.candidate
     model = s.model
     th = s.theta.clone()
-    for p, probe in zip(c.params, c.probe, strict=True):  # start the new parameters off zero (softplus is flat there)
+    for j, (p, probe) in enumerate(zip(c.params, c.probe, strict=True)):  # off zero (softplus is flat there)
         i = model.index(p)
         start = s.step.get(p, probe)
         if c.replaces is None:
             start = start if start > 0.1 * abs(probe) else 0.5 * abs(probe)
             if p.startswith("force."):
                 start = s.step.get(p, 0.0)
+        if c.start is not None and c.start[j] > probe:
+            # An effect that is off at large values (a yield stress above every stress of the rollout: no plastic
+            # flow, no gradient) starts where the screen's probe saw it act. On the video-level plasticity landing
+            # (seed 0) the screen's linear step said 41 kPa (truth 1.5 kPa); both starts stayed there, at the base's
+            # loss, and the true effect was never tried.
+            start = min(start, probe)
         if model.knobs[i].upper is not None:  # a bounded parameter starts inside, where its sigmoid has slope
             start = min(start, 0.5 * model.knobs[i].upper)
         th[i] = model.knobs[i].internal(float(start))

@@ -713,6 +713,42 @@ def test_a_refit_starts_afresh_from_what_the_missing_effect_biased():
     assert math.isclose(m.values(fresh_start(m, th, [], starts=(1e4, 1e5)))["cube.E"], 3e4, rel_tol=1e-6)
 
 
+def test_a_yield_stress_refit_starts_where_the_probe_saw_plastic_flow():
+    """A yield stress above every stress of the rollout has no plastic flow and no gradient: a refit started there
+    never leaves it. The refit starts at the screen's step where that is below the probe, else at the probe; an
+    effect that is off at zero (drag) keeps the screen's step."""
+    from causalgs import _ti
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.screen import Screened
+    from causalgs.discover.search import DiscoverConfig, _refit
+
+    _ti.init("cpu", "float32")
+    obs = _flight()
+    base = Effects.from_spec("gravity;walls")
+
+    class Journal:
+        def __init__(self):
+            self.starts = []
+
+        def calibrate(self, name, model, theta, **options):
+            from causalgs.discover.calibrate import Fit
+
+            self.starts.append(model.values(theta))
+            return Fit(theta, 1.0, 0, 3e4)
+
+    monkey = pytest.MonkeyPatch()
+    monkey.setattr("causalgs.discover.search._state", lambda model, fit: type("S", (), {"starts": []})())
+    try:
+        for key, step, want in (("plasticity", 4.1e4, 2e3), ("plasticity", 800.0, 800.0), ("linear_drag", 0.9, 0.9)):
+            c = BY_KEY[key]
+            m = PhysicsModel(obs, c.spec(base), c.learn(()), res=16)
+            j = Journal()
+            _refit(None, Screened(c, 0.5, {c.params[0]: step}, m, m.initial(E=3e4)), DiscoverConfig(), j, "r")
+            assert [v[c.params[0]] for v in j.starts] == pytest.approx([want, want], rel=1e-6), (key, step)
+    finally:
+        monkey.undo()
+
+
 def test_intervals_cover_refit_starts_the_data_cannot_tell_apart():
     """A refit start whose error is within the 95% profile-likelihood threshold of the best widens the interval to
     its value; a start clearly worse does not."""
