@@ -258,6 +258,16 @@ def extent_draw(x0: np.ndarray, body: np.ndarray, vol: np.ndarray, resolution: f
     return out
 
 
+def refit_map(model: PhysicsModel, J: np.ndarray) -> np.ndarray:
+    """[k, N] the linearised least-squares refit δθ = pinv(J) δx of the fit-window sensitivities ``J`` [N, k]; a
+    parameter the window does not move (:func:`~causalgs.discover.calibrate.live`) takes no part (its row is 0)."""
+    moving = live(model, J)
+    out = np.zeros((J.shape[1], J.shape[0]))
+    if moving.any():
+        out[moving] = np.linalg.pinv(J[:, moving])
+    return out
+
+
 def rest_shape_draws(model: PhysicsModel, theta: torch.Tensor, J: np.ndarray, sigma: float, fut=(),
                      J_fut: np.ndarray | None = None, samples: int = REST_SAMPLES, seed: int = 0,
                      extent: float = 0.0) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
@@ -274,9 +284,7 @@ def rest_shape_draws(model: PhysicsModel, theta: torch.Tensor, J: np.ndarray, si
     fut = list(fut)
     base = positions(model, theta, fr + fut)
     n_fit = len(fr) * model.obs.points * 3
-    moving = live(model, J)  # a parameter the window does not move takes no part in the linearised refit
-    pinv = np.zeros((J.shape[1], J.shape[0]))
-    pinv[moving] = np.linalg.pinv(J[:, moving])
+    pinv = refit_map(model, J)
     rng = np.random.default_rng(seed)
     x0, points0 = model.x0, model.points0
     extent = extent if model.obs.mix is not None else 0.0
@@ -409,11 +417,7 @@ def blind_rms(state: State, J_all: np.ndarray, block: int = 4, seed: int = 2) ->
     frames = fr + fut
     if not (dep[[f - 1 for f in frames]] > 0).any():
         return 0.0
-    J = J_all[:n_fit]
-    moving = live(model, J)
-    pinv = np.zeros((J.shape[1], n_fit))
-    if moving.any():
-        pinv[moving] = np.linalg.pinv(J[:, moving])
+    pinv = refit_map(model, J_all[:n_fit])
     rng = np.random.default_rng(seed)
     body = obs.body
     total = 0.0
