@@ -88,6 +88,8 @@ class State:
     extent: float | None = None
     # ... and with the rigid tracks' error where the bodies deform (m, :func:`blind_rms`; likewise)
     blind: float | None = None
+    # [T-1, B] the bodies' departure from the lens's rigid motion (m, :func:`lens_blind`, kept once rolled out)
+    departure: np.ndarray | None = None
 
 
 def _state(model: PhysicsModel, fit: Fit) -> State:
@@ -387,13 +389,16 @@ def lens_blind(state: State) -> np.ndarray:
     frames (4 views each, a decaying step) moved their error by 0.23 mm at most. It is the optimum of a rigid pose
     fitted to the images of a deforming body."""
     model, obs = state.model, state.model.obs
+    if state.departure is not None:
+        return state.departure
     B = obs.bodies
     if obs.mix is None:
         return np.zeros((len(obs.times) - 1, B))
     with torch.no_grad():
         raw = model.rollout(state.fit.theta, lensed=False)
         gap = ((raw - model.see(raw)) ** 2).numpy().sum(-1) / 3  # [T-1, P], per coordinate
-    return np.stack([np.sqrt(gap[:, obs.body == b].mean(1)) for b in range(B)], axis=1)
+    state.departure = np.stack([np.sqrt(gap[:, obs.body == b].mean(1)) for b in range(B)], axis=1)
+    return state.departure
 
 
 BLIND_SAMPLES = 64
