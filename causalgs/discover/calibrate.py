@@ -44,10 +44,22 @@ class Fit:
         return float(np.sqrt(self.loss)) * UNIT
 
 
+def scale(obs, frames) -> np.ndarray | None:
+    """[F, P, 1] the residual weights of ``frames`` (:meth:`~causalgs.discover.observation.Observation.residual_scale`;
+    None: all 1)."""
+    s = obs.residual_scale()
+    return None if s is None else s[list(frames)][..., None]
+
+
 def mse(model: PhysicsModel, theta: torch.Tensor, frames) -> torch.Tensor:
+    """The weighted mean squared distance (cm²) of the rollout from the measurement over ``frames``."""
     x = model.rollout(theta, frames)
     target = torch.as_tensor(model.obs.x[list(frames)], dtype=torch.float64)
-    return (((x - target) / UNIT) ** 2).mean()
+    d = (x - target) / UNIT
+    s = scale(model.obs, frames)
+    if s is not None:
+        d = d * torch.as_tensor(s, dtype=d.dtype)
+    return (d**2).mean()
 
 
 def fit_frames(model: PhysicsModel) -> list[int]:
@@ -62,9 +74,19 @@ LM_MAX_PARAMS = 24
 
 
 def positions(model: PhysicsModel, theta: torch.Tensor, frames) -> np.ndarray:
-    """The simulated positions at ``frames``, flattened, in cm."""
+    """The simulated positions at ``frames``, flattened, in cm, times their residual weights (:func:`scale`): with
+    :func:`targets`, every linearised least squares over them is the weighted one."""
     with torch.no_grad():
-        return model.rollout(theta, frames).numpy().reshape(-1) / UNIT
+        x = model.rollout(theta, frames).numpy()
+    s = scale(model.obs, frames)
+    return (x if s is None else x * s).reshape(-1) / UNIT
+
+
+def targets(obs, frames) -> np.ndarray:
+    """The measured positions at ``frames`` as :func:`positions` gives the simulated ones (flattened, cm, weighted)."""
+    x = np.asarray(obs.x[list(frames)], dtype=np.float64)
+    s = scale(obs, frames)
+    return (x if s is None else x * s).reshape(-1) / UNIT
 
 
 def jacobian(model: PhysicsModel, theta: torch.Tensor, frames, indices=None, base=None,
@@ -175,7 +197,7 @@ def _levenberg_marquardt(model: PhysicsModel, theta0: torch.Tensor, frames, iter
     or when no damping finds a better point."""
     idx = list(range(len(theta0))) if free is None else list(free)
     E0 = _start_stiffness(model, theta0)
-    target = np.asarray(model.obs.x[list(frames)], dtype=np.float64).reshape(-1) / UNIT
+    target = targets(model.obs, frames)
     theta = theta0.detach().clone()
     try:
         x = positions(model, theta, frames)

@@ -36,9 +36,9 @@ def calibration_options(spec: str, learn, cfg, start: dict | None = None) -> dic
     """What the results of a discovery run's calibrations depend on, besides the measurement: the base model
     (``spec``, ``learn``, the start values ``start``) and of ``cfg`` (a
     :class:`~causalgs.discover.search.DiscoverConfig`) the grid, the starting stiffnesses, the iteration budget and
-    the warm-up horizon."""
+    the warm-up horizon, and whether residuals are weighted where rigid tracks cannot follow the bodies."""
     return {"spec": spec, "learn": list(learn), "start": start, "res": cfg.res, "starts": list(cfg.starts),
-            "iterations": cfg.iterations, "warm": cfg.warm}  # fmt: skip
+            "iterations": cfg.iterations, "warm": cfg.warm, "weigh": cfg.weigh}  # fmt: skip
 
 
 def fingerprint(options: dict, x: np.ndarray, mix: np.ndarray | None = None) -> str:

@@ -56,6 +56,10 @@ class Observation:
     # (m) how finely the points describe each body's extent: a face is known to ± half of it (a fitted run: the
     # voxel its particles filled the bodies at); 0: the points are the material itself (a simulation's particles)
     shape_resolution: float = 0.0
+    # [T, B] how far the tracks may be from the truth beyond the noise, per frame and body (m per coordinate): where
+    # a rigid lens cannot follow a deforming body (:func:`causalgs.discover.search.lens_blind`). None: the noise
+    # alone. Residuals are weighed by :meth:`residual_scale`.
+    track_error: np.ndarray | None = None
 
     def __post_init__(self):
         self.times = np.asarray(self.times, dtype=np.float64).reshape(-1)
@@ -98,6 +102,13 @@ class Observation:
                 raise CausalGSError("observation: 'mix' weights must be finite and >= 0")
             if not np.allclose(self.mix.sum(1), 1.0, atol=1e-6):
                 raise CausalGSError("observation: every point's 'mix' weights must sum to 1")
+        if self.track_error is not None:
+            self.track_error = np.asarray(self.track_error, dtype=np.float64)
+            if self.track_error.shape != (T, self.bodies):
+                raise CausalGSError(f"observation: 'track_error' has shape {list(self.track_error.shape)}, "
+                                    f"expected [{T}, {self.bodies}]")  # fmt: skip
+            if not (np.isfinite(self.track_error).all() and (self.track_error >= 0).all()):
+                raise CausalGSError("observation: 'track_error' must be finite lengths >= 0 (m)")
 
     @property
     def bodies(self) -> int:
@@ -106,6 +117,19 @@ class Observation:
     @property
     def points(self) -> int:
         return self.x.shape[1]
+
+    def residual_scale(self) -> np.ndarray | None:
+        """[T, P] the factor σ / sqrt(σ² + e²) every residual coordinate is weighed by, σ the measurement noise
+        (:attr:`noise`, else :func:`noise_floor`) and e the point's body's :attr:`track_error` at that frame: a
+        residual of the size the tracks may err by counts as much as the noise does elsewhere, so the weighted
+        error of a correct model stays at the noise on every frame. None without a track error (every weight 1)."""
+        if self.track_error is None:
+            return None
+        sigma = self.noise if self.noise else noise_floor(self)
+        if sigma <= 0:
+            return None
+        e = self.track_error[:, self.body]
+        return sigma / np.sqrt(sigma**2 + e**2)
 
     @property
     def future(self) -> int:

@@ -154,6 +154,10 @@ def markdown(report: dict) -> str:
         L += [f"Source: `{src}`", ""]
     eb, ea = report["error_before"], report["error_after"]
     drop = 1 - ea["future_rms_m"] / eb["future_rms_m"] if eb["future_rms_m"] > 0 else 0.0
+    # the floors compare with the errors as the gate weighs them (the same where nothing is weighted)
+    fit_w = eb.get("fit_rms_weighted_m", eb["fit_rms_m"])
+    fut_w = eb.get("future_rms_weighted_m", eb["future_rms_m"])
+    weighed = " (weighted)" if "future_rms_weighted_m" in eb else ""
     if report["discovered"]:
         L.append("## Found")
         for d in report["discovered"]:
@@ -188,11 +192,11 @@ def markdown(report: dict) -> str:
               for a in report["ambiguous"]]  # fmt: skip
         L.append("")
     elif report["verdict"] == "unexplained discrepancy":
-        ratio = eb["fit_rms_m"] / report["floor_rms_m"]
-        fut = eb["future_rms_m"] / report["floor_rms_m"]
+        ratio = fit_w / report["floor_rms_m"]
+        fut = fut_w / report["floor_rms_m"]
         held = f"{fut:.1f}× on the held-out frames"
         if report.get("future_floor_rms_m"):
-            held = (f"{eb['future_rms_m'] / report['future_floor_rms_m']:.1f}× on the held-out frames above what a "
+            held = (f"{fut_w / report['future_floor_rms_m']:.1f}× on the held-out frames above what a "
                     f"correct model would miss them by ({_mm(report['future_floor_rms_m'])}: {_future_floor(report)})")
         L += ["## Something is missing that the catalogue does not name", "",
               f"The calibrated model stays {ratio:.1f}× above the noise floor ({_mm(report['floor_rms_m'])} per "
@@ -202,18 +206,22 @@ def markdown(report: dict) -> str:
               f"{_pct(report['disagreement']['residual_force_gain'])} of the residual acceleration (low: impulses "
               "at contacts; high: a smooth force). Where and when: below.", ""]  # fmt: skip
     else:
-        ratio = eb["fit_rms_m"] / report["floor_rms_m"]
+        ratio = fit_w / report["floor_rms_m"]
         L += ["## No missing effect", "",
               f"The calibrated model is within {ratio:.2f}× of the noise floor ({_mm(report['floor_rms_m'])} per "
               "coordinate), and no candidate improves the held-out frames enough to pass the gate.", ""]  # fmt: skip
         if report.get("future_floor_rms_m"):
-            L[-1:] = [f"On the held-out frames it misses by {_mm(eb['future_rms_m'])}, "
-                      f"{eb['future_rms_m'] / report['future_floor_rms_m']:.1f}× what a correct model would miss them "
+            L[-1:] = [f"On the held-out frames it misses by {_mm(fut_w)}{weighed}, "
+                      f"{fut_w / report['future_floor_rms_m']:.1f}× what a correct model would miss them "
                       f"by ({_mm(report['future_floor_rms_m'])}: {_future_floor(report)}).", ""]  # fmt: skip
     L += ["## Errors (RMS distance per point)", "", "| | fit window | held-out future |", "|---|---|---|",
           f"| before | {_mm(eb['fit_rms_m'])} | {_mm(eb['future_rms_m'])} |",
           f"| after | {_mm(ea['fit_rms_m'])} | {_mm(ea['future_rms_m'])} |", "",
           f"Held-out error change: {-100 * drop:+.0f}%. Noise per coordinate: {_mm(report['noise'])}.", ""]  # fmt: skip
+    if weighed:
+        L[-1:] = [f"Weighted as the calibrations and the gate weigh them (per coordinate; below): fit window "
+                  f"{_mm(fit_w)} → {_mm(ea['fit_rms_weighted_m'])}, held-out future {_mm(fut_w)} → "
+                  f"{_mm(ea['future_rms_weighted_m'])}.", ""]  # fmt: skip
     im = report.get("images")
     if im:
         L += [f"On images discovery never fitted ({im['images']} views of held-out cameras at frames "
@@ -265,6 +273,13 @@ def markdown(report: dict) -> str:
                      "cannot follow that deformation and err by about as much there (on the sticky landing of "
                      "`causalgs synth toss`, 2.7–6.4 mm at the impact against 2.8–5.7 mm of departure), and the "
                      "held-out floor carries that error forward.")  # fmt: skip
+        w = report.get("weights")
+        if w:
+            low = [f for f, v in enumerate(w["per_frame_min"]) if f > 0 and v < 0.5]
+            L.append(f"Every calibration and the gate weigh a residual by σ/√(σ² + e²), e the base fit's departure "
+                     f"at that frame and body: a residual of the size the tracks may err by there counts as much as "
+                     f"the noise does elsewhere (weights down to {w['min_weight']:.2f}"
+                     + (f"; below one half at frames {_ranges(low)}" if low else "") + ").")  # fmt: skip
         if report.get("shape_resolution_m"):
             L.append(f"The run filled its bodies with particles at {_mm(report['shape_resolution_m'])}, so a body's "
                      f"faces are known to ± {_mm(report['shape_resolution_m'] / 2)}; a landing's bounce depends on "

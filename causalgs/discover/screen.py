@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from causalgs.discover.calibrate import UNIT, jacobian, positions
+from causalgs.discover.calibrate import jacobian, positions, targets
 from causalgs.discover.candidates import Candidate
 from causalgs.discover.model import PhysicsModel
 from causalgs.errors import CausalGSError
@@ -65,7 +65,7 @@ def screen(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate],
            models: dict | None = None) -> list[Screened]:  # fmt: skip
     """Score every candidate (see the module docstring); best first. ``models`` caches candidate models by key."""
     frames = list(frames)
-    target = base.obs.x[frames].reshape(-1) / UNIT
+    target = targets(base.obs, frames)
     xb = positions(base, theta, frames)
     r = target - xb
     Jb = sensitivities(base, theta, frames, base.base_indices(), base=xb)

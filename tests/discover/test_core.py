@@ -379,7 +379,7 @@ def test_the_blind_spot_is_carried_through_the_linearised_refit(monkeypatch):
 
     P, T, observed = 5, 9, 6
     obs = SimpleNamespace(times=np.arange(T) / 60.0, observed=observed, points=P, bodies=1, body=np.zeros(P, int),
-                          mix=np.ones((P, 1)))  # fmt: skip
+                          mix=np.ones((P, 1)), track_error=None, residual_scale=lambda: None)  # fmt: skip
     st = SimpleNamespace(model=SimpleNamespace(obs=obs, inert=1e-6))
     monkeypatch.setattr(search, "live", lambda model, J: np.abs(J).max(0) > 0)
     dep = np.full((T - 1, 1), 0.002)  # 2 mm at every frame
@@ -395,6 +395,103 @@ def test_the_blind_spot_is_carried_through_the_linearised_refit(monkeypatch):
     # nothing deforms: nothing is carried
     dep = np.zeros((T - 1, 1))
     assert search.blind_rms(st, J, block=1) == 0.0
+
+
+def test_residuals_are_weighted_where_rigid_tracks_cannot_follow_the_bodies():
+    """The track error is the base fit's departure from the lens's rigid motion (none in a free flight, none at the
+    first frame); a residual is weighed by σ/sqrt(σ² + e²), and the calibration's torch objective, the numpy
+    residuals of its Levenberg–Marquardt and a State's errors agree with that plain formula."""
+    import dataclasses
+
+    from causalgs.discover.calibrate import UNIT, Fit, mse, positions, targets
+    from causalgs.discover.search import _state, lens_blind, track_error
+
+    sigma = 5e-4
+    runs = _flight_and_bounce(noise=sigma)
+    assert track_error(runs["flight"][0], sigma) is None
+    st, m, obs = runs["bounce"]
+    e = track_error(st, sigma)
+    assert e.shape == (14, 1) and (e[0] == 0).all() and np.allclose(e[1:], lens_blind(st))
+    assert obs.residual_scale() is None
+    weighed = dataclasses.replace(obs, track_error=e)
+    w = weighed.residual_scale()  # [T, P]
+    assert np.allclose(w, sigma / np.sqrt(sigma**2 + e[:, [0]] ** 2) * np.ones((1, obs.points)))
+    assert w[0].min() == 1.0 and w.min() < 0.5
+    with pytest.raises(CausalGSError, match="track_error"):
+        dataclasses.replace(obs, track_error=e[1:])
+    m.obs = weighed
+    th = st.fit.theta.clone()
+    th[[i for i, k in enumerate(m.knobs) if k.kind == "u"]] += 0.05  # a throw off by 5 cm/s: a residual
+    fr, fut = list(range(1, 10)), list(range(10, 14))
+    with torch.no_grad():
+        sim = m.rollout(th).numpy()
+        objective = float(mse(m, th, fr))
+    plain = (((obs.x[1:] - sim) / UNIT) * w[1:, :, None]) ** 2  # [T-1, P, 3]
+    r = targets(weighed, fr) - positions(m, th, fr)
+    assert objective == pytest.approx(float(plain[:9].mean()), rel=1e-9)
+    assert float(r @ r) / len(r) == pytest.approx(objective, rel=1e-6)
+    got = _state(m, Fit(th, objective, 0, 3e4))
+    assert got.train == pytest.approx(objective, rel=1e-6) and got.future == pytest.approx(plain[9:].mean(), rel=1e-6)
+    raw = ((obs.x[1:] - sim) / UNIT) ** 2
+    assert got.raw_train == pytest.approx(raw[[f - 1 for f in fr]].mean()) and got.raw_train > got.train
+    assert got.raw_future == pytest.approx(raw[[f - 1 for f in fut]].mean())
+
+
+def test_a_weighted_calibration_is_pulled_less_by_the_tracks_error_at_an_impact():
+    """Rigid tracks of a deforming body err by about its departure from rigid at an impact. Displaced by that much
+    there, the tracks pull the calibrated throw off the truth: as far as the plain linear least squares of the
+    unweighted residuals says, and weighted by the track error, as far as the weighted least squares says (numpy's
+    lstsq of the rows times their weights), which is less."""
+    import dataclasses
+
+    from causalgs.discover.calibrate import UNIT, calibrate, jacobian
+    from causalgs.discover.search import track_error
+
+    sigma = 5e-4
+    st, m, obs = _flight_and_bounce(noise=sigma)["bounce"]
+    e = track_error(st, sigma)
+    assert e[1:10].max() > 4 * sigma  # the impact is in the fit window
+    shift = e[:, :, None] * np.array([1.0, 0.0, 0.0]) * np.ones((1, obs.points, 1))  # along x, the tracks' error
+    u = [i for i, k in enumerate(m.knobs) if k.kind == "u"]
+    truth = st.fit.theta[u].clone()
+    fr = list(range(1, 10))
+    J = jacobian(m, st.fit.theta, fr, u)  # unweighted (cm per unit)
+    weighed = dataclasses.replace(obs, x=obs.x + shift, track_error=e)
+    w = np.repeat(weighed.residual_scale()[fr].reshape(-1), 3)
+    r = shift[fr].reshape(-1) / UNIT
+    off = {}
+    plain = dataclasses.replace(obs, x=obs.x + shift)
+    for name, o, rows in (("plain", plain, np.ones_like(w)), ("weighted", weighed, w)):
+        m.obs = o
+        got = (calibrate(m, st.fit.theta, iterations=8, free=u, method="lm").theta[u] - truth).numpy()
+        want, *_ = np.linalg.lstsq(J * rows[:, None], r * rows, rcond=None)
+        assert np.abs(got - want).max() < 0.1 * np.abs(want).max() + 1e-5, (name, got, want)
+        off[name] = float(np.linalg.norm(got))
+    assert off["plain"] > 5e-3 and off["weighted"] < 0.6 * off["plain"], off
+
+
+def test_discovery_weighs_a_bounce_seen_through_a_lens_and_not_a_flight(tmp_path):
+    """Through a lens, the base is recalibrated with the residuals weighted by its own departure from rigid (kept in
+    the journal as "base/weighted"), and the report gives the weights and both errors; a free flight, or
+    ``weigh=False``, leaves every residual as it is."""
+    from causalgs.discover.journal import Journal
+    from causalgs.discover.search import DiscoverConfig, discover
+
+    runs = _flight_and_bounce(noise=5e-4)
+    for name, weigh in (("bounce", True), ("flight", True), ("bounce", False)):
+        _, _, obs = runs[name]
+        journal = Journal(None, "")
+        cfg = DiscoverConfig(res=16, starts=(3e4,), iterations=2, warm=0.0, weigh=weigh)
+        report, _ = discover(obs, "gravity;ground:mu=0.3;walls", candidates=[], config=cfg, journal=journal)
+        eb = report["error_before"]
+        if name == "bounce" and weigh:
+            assert "base/weighted" in journal.entries and obs.track_error is None  # the caller's is untouched
+            w = report["weights"]
+            assert len(w["track_error_m"]) == 14 and w["track_error_m"][0] == [0.0] and 0 < w["min_weight"] < 0.5
+            assert eb["fit_rms_weighted_m"] < eb["fit_rms_m"]
+        else:
+            assert report["weights"] is None and "base/weighted" not in journal.entries
+            assert "fit_rms_weighted_m" not in eb
 
 
 def test_candidates_apply_only_where_the_base_lacks_them():

@@ -289,6 +289,10 @@ def test_the_report_says_the_measurement_was_refined_and_what_it_gained():
     text = markdown(rep)
     assert "depart from their rigid motion by up to 5.10 mm per coordinate (frame 4; above half of that at frames " \
            "4–5)" in text, text
+    assert "weigh a residual" not in text
+    rep["weights"] = {"min_weight": 0.12, "per_frame_min": [1.0, 1.0, 0.8, 0.12, 0.3, 0.6]}
+    assert "weigh a residual by σ/√(σ² + e²)" in markdown(rep)
+    assert "(weights down to 0.12; below one half at frames 3–4)" in markdown(rep)
 
 
 def test_the_error_plot_shows_the_deformation_the_tracks_cannot_follow(monkeypatch, tmp_path):
@@ -338,3 +342,11 @@ def test_the_report_weighs_the_held_out_error_against_what_a_correct_model_would
     assert "fit window's noise carried forward 2.00 mm" in text
     rep["verdict"] = "unexplained discrepancy"
     assert "3.5× on the held-out frames" not in markdown(rep) and "2.1× on the held-out frames" in markdown(rep)
+    # weighted residuals: the floors compare with the weighted errors, and both are shown
+    rep["verdict"] = "no missing effect"
+    rep["error_before"] = rep["error_after"] = {"fit_rms_m": 0.0030, "future_rms_m": 0.0080,
+                                                "fit_rms_weighted_m": 0.0015, "future_rms_weighted_m": 0.0053}
+    text = markdown(rep)
+    assert "misses by 5.30 mm (weighted), 2.1× what a correct model would miss them by" in text, text
+    assert "within 1.00× of the noise floor" in text
+    assert "fit window 1.50 mm → 1.50 mm, held-out future 5.30 mm → 5.30 mm" in text
