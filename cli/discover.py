@@ -64,13 +64,18 @@ def _starts(text: str) -> tuple[float, ...]:
               help="For a run: the measured motion. 'refined': the run's tracked motion corrected frame by frame to "
                    "that frame's images (one rigid correction per motion pattern; kept in RUN/tracks.npz, about ten "
                    "CPU-seconds a frame); 'kinematic': the run's velocity field as fitted, which smooths impacts.")
+@click.option("--weigh/--no-weigh", default=True, show_default=True,
+              help="Through a run's rigid lens: weigh every residual by σ/√(σ² + e²), e the base fit's departure "
+                   "from rigid motion at that frame and body (where rigid tracks cannot follow a deforming body, "
+                   "as at an impact, they err by about that much), in every calibration and in the gate. Without a "
+                   "lens, or where no body departs by half the noise, nothing is weighted.")  # fmt: skip
 @precision_option
 @click.option("--resume", is_flag=True,
               help="Continue the discovery run in --out (stopped, or to redo its outputs) from the calibrations it "
                    "finished (progress.json); the options must be the same.")  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print report.json to stdout.")
-def discover(source, out, spec, learn, candidates, max_effects, res, starts, iterations, tracking, precision, resume,
-             as_json):  # fmt: skip
+def discover(source, out, spec, learn, candidates, max_effects, res, starts, iterations, tracking, weigh, precision,
+             resume, as_json):  # fmt: skip
     """Find where simulation and measurement disagree, name the missing physical effect, add it, show the gap shrink.
 
     SOURCE is a fitted run folder (`causalgs fit`: the measurement is the tracked motion of its particles over the
@@ -80,7 +85,8 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     scored). The model (--effects) is calibrated on the fit window from
     several stiffnesses; the disagreement is mapped by frame, body and contact state; every candidate of the
     catalogue is screened with one sensitivity rollout; the best are refitted jointly with the base through the
-    differentiable MPM; a gate accepts one only if the held-out error drops, BIC (with an effective sample size)
+    differentiable MPM (through a run's rigid lens, residuals weighted where the bodies deform: --weigh); a gate
+    accepts one only if the held-out error drops, BIC (with an effective sample size)
     improves, its parameters are significant (block bootstrap) and inside their ranges, and the refit reaches the
     noise floor on the fit window and misses the held-out frames by at most 3x what a correct model would (its own
     window error, at most the floor, with the window's noise, the bodies' extent and the rigid tracks' error where
@@ -108,7 +114,8 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
         select(cands)  # unknown names: one line, before any work
     if 0 < res < 8:
         raise CausalGSError(f"--res {res}: give 0 (a run's own grid) or at least 8 cells")
-    cfg = DiscoverConfig(res=res, starts=_starts(starts), iterations=iterations, max_effects=max_effects)
+    cfg = DiscoverConfig(res=res, starts=_starts(starts), iterations=iterations, max_effects=max_effects,
+                         weigh=weigh)  # fmt: skip
     _ti.init("cpu", precision, quiet=True)
     from causalgs.progress import progress_bar
 

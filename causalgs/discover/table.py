@@ -254,7 +254,9 @@ def execute(todo: list, jobs: int, local, worker, args: tuple, failed, finish, l
     """Run every (case, seed) of ``todo`` and hand each row to ``finish`` as it ends: here, one after the other
     (``jobs`` 1: ``local(case, seed)``), or ``jobs`` at once, each in a fresh spawned process
     (``worker(case, seed, *args)``, a module-level function; Taichi and torch share the cores between them). A
-    crashed worker is a row of the table (``failed(case, seed, why)``), not the end of it."""
+    run that raises is a row of the table (``failed(case, seed, why)``), not the end of it. A worker process that
+    dies (killed, or crashed in native code) breaks the whole pool, and every run still in it then reports the
+    break, not an outcome of its own: those get no row (a resumed table runs them again), and the log names them."""
     if jobs <= 1:
         for name, seed in todo:
             finish(local(name, seed))
@@ -262,19 +264,27 @@ def execute(todo: list, jobs: int, local, worker, args: tuple, failed, finish, l
     import multiprocessing
     import os
     from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures.process import BrokenProcessPool
 
     threads = max(1, (os.cpu_count() or 1) // jobs)
     ctx = multiprocessing.get_context("spawn")  # Taichi's runtime must not be forked
     with ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init, initargs=(threads,)) as pool:
         futures = {pool.submit(worker, name, seed, *args): (name, seed) for name, seed in todo}
         log(f"{len(todo)} runs, {jobs} at once")
+        broken = []
         for fut in as_completed(futures):
             name, seed = futures[fut]
             try:
                 row = fut.result()
+            except BrokenProcessPool:
+                broken.append(f"{name} (seed {seed})")
+                continue
             except Exception as e:
                 row = failed(name, seed, f"{type(e).__name__}: {e}")
             finish(row)
+    if broken:
+        log(f"a worker process died (killed or crashed), so these runs have no row; run the table again to resume "
+            f"them: {', '.join(broken)}")
 
 
 def _slug(name: str) -> str:

@@ -124,6 +124,8 @@ def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_
     assert json.loads(r.output)["calibrations_resumed"] >= len(done)
     r = CliRunner().invoke(cli, [*args[:-5], "--iterations", "13", "--max-effects", "1", "--resume"])
     assert r.exit_code == 1 and "made with other options" in r.output, r.output
+    r = CliRunner().invoke(cli, [*args[:-1], "--no-weigh", "--resume"])  # the weights change what is calibrated
+    assert r.exit_code == 1 and "made with other options" in r.output, r.output
     bad = [
         (["discover", str(tmp_path / "missing.npz"), "--out", str(out)], "no such observation file"),
         (["discover", str(tmp_path), "--out", str(out)], "not a fitted run"),
@@ -350,3 +352,17 @@ def test_the_report_weighs_the_held_out_error_against_what_a_correct_model_would
     assert "misses by 5.30 mm (weighted), 2.1× what a correct model would miss them by" in text, text
     assert "within 1.00× of the noise floor" in text
     assert "fit window 1.50 mm → 1.50 mm, held-out future 5.30 mm → 5.30 mm" in text
+
+
+def test_a_dead_worker_leaves_its_runs_for_the_resumed_table():
+    """A worker process that dies (here: ``os._exit(3)``, as a killed one) breaks the pool; the runs it broke get no
+    row (a resumed table runs them again) and the log names them, instead of a "failed" row for every run in it."""
+    import operator
+    import os
+
+    import causalgs.discover.table as T
+
+    rows, logs = [], []
+    T.execute([(os._exit, 3)], 2, None, operator.call, (), lambda *a: pytest.fail("a failed row"), rows.append,
+              logs.append)  # fmt: skip
+    assert rows == [] and "a worker process died" in logs[-1] and "(seed 3)" in logs[-1], logs
