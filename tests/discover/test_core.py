@@ -399,8 +399,9 @@ def test_the_blind_spot_is_carried_through_the_linearised_refit(monkeypatch):
 
 def test_residuals_are_weighted_where_rigid_tracks_cannot_follow_the_bodies():
     """The track error is the base fit's departure from the lens's rigid motion (none in a free flight, none at the
-    first frame); a residual is weighed by σ/sqrt(σ² + e²), and the calibration's torch objective, the numpy
-    residuals of its Levenberg–Marquardt and a State's errors agree with that plain formula."""
+    first frame, at most four times the noise); a residual is weighed by σ/sqrt(σ² + e²), and the calibration's
+    torch objective, the numpy residuals of its Levenberg–Marquardt and a State's errors agree with that plain
+    formula."""
     import dataclasses
 
     from causalgs.discover.calibrate import UNIT, Fit, mse, positions, targets
@@ -411,12 +412,14 @@ def test_residuals_are_weighted_where_rigid_tracks_cannot_follow_the_bodies():
     assert track_error(runs["flight"][0], sigma) is None
     st, m, obs = runs["bounce"]
     e = track_error(st, sigma)
-    assert e.shape == (14, 1) and (e[0] == 0).all() and np.allclose(e[1:], lens_blind(st))
+    dep = lens_blind(st)
+    assert e.shape == (14, 1) and (e[0] == 0).all() and np.allclose(e[1:], np.minimum(dep, 4 * sigma))
+    assert dep.max() > 4 * sigma  # capped at the impact: a larger departure is more likely the model's own error
     assert obs.residual_scale() is None
     weighed = dataclasses.replace(obs, track_error=e)
     w = weighed.residual_scale()  # [T, P]
     assert np.allclose(w, sigma / np.sqrt(sigma**2 + e[:, [0]] ** 2) * np.ones((1, obs.points)))
-    assert w[0].min() == 1.0 and w.min() < 0.5
+    assert w[0].min() == 1.0 and w.min() == pytest.approx(1 / math.sqrt(17))
     with pytest.raises(CausalGSError, match="track_error"):
         dataclasses.replace(obs, track_error=e[1:])
     m.obs = weighed
@@ -450,7 +453,7 @@ def test_a_weighted_calibration_is_pulled_less_by_the_tracks_error_at_an_impact(
     sigma = 5e-4
     st, m, obs = _flight_and_bounce(noise=sigma)["bounce"]
     e = track_error(st, sigma)
-    assert e[1:10].max() > 4 * sigma  # the impact is in the fit window
+    assert e[1:10].max() >= 4 * sigma  # the impact is in the fit window (capped there)
     shift = e[:, :, None] * np.array([1.0, 0.0, 0.0]) * np.ones((1, obs.points, 1))  # along x, the tracks' error
     u = [i for i, k in enumerate(m.knobs) if k.kind == "u"]
     truth = st.fit.theta[u].clone()
