@@ -64,11 +64,13 @@ def _starts(text: str) -> tuple[float, ...]:
               help="For a run: the measured motion. 'refined': the run's tracked motion corrected frame by frame to "
                    "that frame's images (one rigid correction per motion pattern; kept in RUN/tracks.npz, about ten "
                    "CPU-seconds a frame); 'kinematic': the run's velocity field as fitted, which smooths impacts.")
-@click.option("--weigh/--no-weigh", default=True, show_default=True,
+@click.option("--weigh/--no-weigh", default=False, show_default=True,
               help="Through a run's rigid lens: weigh every residual by σ/√(σ² + e²), e the base fit's departure "
                    "from rigid motion at that frame and body (where rigid tracks cannot follow a deforming body, "
                    "as at an impact, they err by about that much), in every calibration and in the gate. Without a "
-                   "lens, or where no body departs by half the noise, nothing is weighted.")  # fmt: skip
+                   "lens, or where no body departs by half the noise, nothing is weighted. Off by default: on "
+                   "the hidden damping of the video table it read no missing effect where unweighted discovery "
+                   "reads an unexplained discrepancy (README).")  # fmt: skip
 @precision_option
 @click.option("--resume", is_flag=True,
               help="Continue the discovery run in --out (stopped, or to redo its outputs) from the calibrations it "
@@ -85,7 +87,7 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     scored). The model (--effects) is calibrated on the fit window from
     several stiffnesses; the disagreement is mapped by frame, body and contact state; every candidate of the
     catalogue is screened with one sensitivity rollout; the best are refitted jointly with the base through the
-    differentiable MPM (through a run's rigid lens, residuals weighted where the bodies deform: --weigh); a gate
+    differentiable MPM (through a run's rigid lens, --weigh weighs residuals down where the bodies deform); a gate
     accepts one only if the held-out error drops, BIC (with an effective sample size)
     improves, its parameters are significant (block bootstrap) and inside their ranges, and the refit reaches the
     noise floor on the fit window and misses the held-out frames by at most 3x what a correct model would (its own

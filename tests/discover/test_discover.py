@@ -124,7 +124,7 @@ def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_
     assert json.loads(r.output)["calibrations_resumed"] >= len(done)
     r = CliRunner().invoke(cli, [*args[:-5], "--iterations", "13", "--max-effects", "1", "--resume"])
     assert r.exit_code == 1 and "made with other options" in r.output, r.output
-    r = CliRunner().invoke(cli, [*args[:-1], "--no-weigh", "--resume"])  # the weights change what is calibrated
+    r = CliRunner().invoke(cli, [*args[:-1], "--weigh", "--resume"])  # the weights change what is calibrated
     assert r.exit_code == 1 and "made with other options" in r.output, r.output
     bad = [
         (["discover", str(tmp_path / "missing.npz"), "--out", str(out)], "no such observation file"),
