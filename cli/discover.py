@@ -167,10 +167,14 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
                    "prediction by 2-3 cm.")
 @click.option("--jobs", type=click.IntRange(1, 64), default=1, show_default=True,
               help="Runs at once, each in its own process.")
+@click.option("--rigid-tracks", is_flag=True,
+              help="Trajectory level: observe each body through its best rigid motion, as tracks from video do, and "
+                   "discover through that lens: what rigid tracks hide (a wobble, a squash) without the errors of "
+                   "tracking images.")
 @click.option("--level", type=click.Choice(["trajectory", "video"]), default="trajectory", show_default=True,
               help="trajectory: simulated particle tracks with noise (minutes a case); video: a rendered video, a "
                    "fit and discovery on the run, end to end (about 20 minutes a flight case on 2 cores).")
-def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, jobs, level):
+def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, jobs, rigid_tracks, level):
     """Reproduce the hidden-effect table: for every effect of the catalogue, a tossed block simulated with it and
     a model without it; negative controls; an effect outside the catalogue.
 
@@ -189,6 +193,8 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
     from causalgs import _ti
     from causalgs.discover.search import DiscoverConfig
 
+    if level == "video" and rigid_tracks:
+        raise CausalGSError("--rigid-tracks is for --level trajectory: video tracks are rigid already")
     if level == "video":
         from causalgs.discover.video_table import CASES, VideoTableConfig, run_video_table
     else:
@@ -210,7 +216,7 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
     else:
         res = res or 20
         cfg = TableConfig(seeds=seeds, first_seed=first_seed, res=res, only=names, control_seeds=control_seeds,
-                          jobs=jobs, discover=DiscoverConfig(res=res))  # fmt: skip
+                          jobs=jobs, rigid=rigid_tracks, discover=DiscoverConfig(res=res))  # fmt: skip
         rows = run_table(out, cfg, log=_console_log())
     s = summary(rows)
     click.echo(json.dumps(s))

@@ -275,12 +275,18 @@ def synthesize(
     noise: float = 0.0,
     rest_noise: float = 0.0,
     reference_res: int = 48,
+    rigid: bool = False,
     progress: bool = False,
 ) -> Observation:
     """Simulate the built-in ``scene`` (``causalgs.synth.physics.SETUPS``) with the effects spec ``effects`` (None:
     the scene's own) on the reference grid and observe ``points`` of its particles (spread over the bodies by
     volume) with Gaussian noise of ``noise`` m per coordinate. ``rest_noise`` perturbs the first frame only (a
-    noisy reconstruction of the rest shape). ``observed`` defaults to the paper's 3/4 protocol."""
+    noisy reconstruction of the rest shape). ``observed`` defaults to the paper's 3/4 protocol.
+
+    ``rigid``: the points are seen as tracks from video see them, each body through its best rigid motion
+    (:func:`rigid_projection` of all the body's particles, before the noise), and the observation carries that
+    lens (``mix``, one pattern per body): what is measured is what a rigid tracker of a perfect video would give,
+    so that what the lens hides (a wobble, a squash) is tested apart from the errors of tracking images."""
     from causalgs.synth import physics
 
     if scene not in physics.SETUPS:
@@ -303,6 +309,11 @@ def synthesize(
         vol.append(np.full(len(pick), volume[b] / len(pick)))
     idx = np.concatenate(idx)
     x = run["x"][:, idx].astype(np.float64)
+    if rigid:
+        every = torch.from_numpy(run["x"].astype(np.float64))
+        mix = torch.nn.functional.one_hot(torch.from_numpy(owner.astype(np.int64)), len(setup.bodies)).double()
+        seen = rigid_projection(every, every[0], mix, torch.ones(len(owner), dtype=torch.float64))
+        x = seen[:, idx].numpy()
     x = x + noise * rng.standard_normal(x.shape)
     x[0] += rest_noise * rng.standard_normal(x[0].shape)
     eff = run["effects"]
@@ -316,6 +327,7 @@ def synthesize(
         "noise": noise,
         "rest_noise": rest_noise,
         "seed": seed,
+        "rigid": rigid,
     }
     planes = [name for name in ("ground", "ground_sticky", "floor") if name in eff.names()]
     ground = float(eff.get(planes[0], "d")[0]) if planes else None
@@ -324,5 +336,5 @@ def synthesize(
         times=np.arange(frames) / fps, x=x, vol=np.concatenate(vol), body=np.concatenate(body),
         observed=observed if observed is not None else max(3, round(frames * 67 / 89)), lo=setup.lo, hi=setup.hi,
         density=dens, ground=ground, noise=noise if noise > 0 else None, names=[b.name for b in setup.bodies],
-        truth=truth,
+        truth=truth, mix=np.eye(len(setup.bodies))[np.concatenate(body)] if rigid else None,
     )  # fmt: skip

@@ -89,13 +89,15 @@ class TableConfig:
     only: tuple[str, ...] = ()  # case names (empty: all)
     control_seeds: int | None = None  # seeds per negative control (None: ``seeds``); 4 × 5 controls = 20
     jobs: int = 1  # runs at once, each in its own process
+    # observe each body through its best rigid motion, as tracks from video do (``synthesize(rigid=True)``)
+    rigid: bool = False
     discover: DiscoverConfig = field(default_factory=lambda: DiscoverConfig(res=20))
 
 
 def observe(case: Case, seed: int, cfg: TableConfig) -> Observation:
     return synthesize("toss", case.scene, seed=seed, points=1_000_000, frames=cfg.frames, fps=cfg.fps,
                       noise=cfg.noise, rest_noise=cfg.rest_noise + case.rest_noise,
-                      reference_res=cfg.res)  # fmt: skip
+                      reference_res=cfg.res, rigid=cfg.rigid)  # fmt: skip
 
 
 def _start(case: Case, obs: Observation) -> tuple[dict | None, tuple[float, ...] | None]:
@@ -219,7 +221,7 @@ def run_table(out, cfg: TableConfig | None = None, log=None) -> list[dict]:
     log = log or (lambda msg: None)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    rows, todo = pending(out, "trajectory", plan(cfg))
+    rows, todo = pending(out, measurement(cfg), plan(cfg))
 
     def finish(row: dict) -> None:
         rows.append(row)
@@ -235,6 +237,12 @@ def run_table(out, cfg: TableConfig | None = None, log=None) -> list[dict]:
     return rows
 
 
+def measurement(cfg: TableConfig | dict) -> str:
+    """The name of a trajectory table's measurement, kept in ``table.json`` (a resumed table must not mix two)."""
+    rigid = cfg.get("rigid", False) if isinstance(cfg, dict) else cfg.rigid
+    return "trajectory, rigid tracks" if rigid else "trajectory"
+
+
 def pending(out: Path, level: str, runs: list) -> tuple[list[dict], list]:
     """(the rows ``out/table.json`` holds, the runs of ``runs`` it lacks); a table of another level there is a
     one-line error."""
@@ -244,8 +252,8 @@ def pending(out: Path, level: str, runs: list) -> tuple[list[dict], list]:
     if (out / "table.json").is_file():
         saved = read_json(out / "table.json", "table")
         if saved.get("level", "trajectory") != level:
-            raise CausalGSError(f"{out / 'table.json'} is a {saved.get('level', 'trajectory')}-level table, not a "
-                                f"{level}-level one: choose another --out")  # fmt: skip
+            raise CausalGSError(f"{out / 'table.json'} holds a table of the {saved.get('level', 'trajectory')} level, "
+                                f"not of the {level} level: choose another --out")  # fmt: skip
         done = {(r["case"], r["seed"]): r for r in saved.get("rows", [])}
     return list(done.values()), [k for k in runs if k not in done]
 
@@ -372,7 +380,8 @@ def _sorted(rows: list[dict]) -> list[dict]:
 def _write(out: Path, rows: list[dict], cfg: TableConfig | dict) -> None:
     rows = _sorted(rows)
     config = cfg if isinstance(cfg, dict) else _cfg_dict(cfg)
-    write_json(out / "table.json", finite({"rows": rows, "summary": summary(rows), "config": config}))
+    saved = {"level": measurement(config), "rows": rows, "summary": summary(rows), "config": config}
+    write_json(out / "table.json", finite(saved))
     write_text(out / "table.md", markdown(rows))
 
 

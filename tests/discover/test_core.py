@@ -270,6 +270,28 @@ def test_an_observation_carries_its_lens(tmp_path):
         assert "\n" not in str(e.value)
 
 
+def test_a_synthetic_measurement_through_rigid_tracks_keeps_only_each_bodys_rigid_motion():
+    """``synthesize(rigid=True)``: each body's points move as its best rigid motion of all its particles (what a
+    rigid tracker of a perfect video measures), the observation carries that lens, and the deformation it leaves
+    out is what the raw particles show beyond it."""
+    import torch
+
+    from causalgs.discover.observation import rigid_projection, synthesize
+
+    kw = dict(seed=0, points=200, frames=14, fps=24.0, reference_res=12)
+    raw = synthesize("toss", "gravity;ground:mu=0.3;walls;plasticity:yield_stress=1500", **kw)
+    seen = synthesize("toss", "gravity;ground:mu=0.3;walls;plasticity:yield_stress=1500", rigid=True, **kw)
+    assert raw.mix is None and seen.truth["rigid"] is True
+    assert seen.mix.shape == (seen.points, seen.bodies) and np.array_equal(seen.mix.argmax(1), seen.body)
+    assert np.abs(seen.x[0] - raw.x[0]).max() < 1e-9
+    x = torch.from_numpy(seen.x)
+    again = rigid_projection(x, x[0], torch.from_numpy(seen.mix), torch.from_numpy(seen.vol)).numpy()
+    assert np.abs(again - seen.x).max() < 1e-9  # nothing but rigid motion is left to see
+    gap = np.sqrt(((raw.x - seen.x) ** 2).sum(-1).mean(-1))
+    assert gap[:4].max() < 1e-4  # in flight the block is rigid
+    assert gap[-1] > 5e-3  # squashed on the ground for good: the lens does not show it
+
+
 def test_extent_draws_move_each_face_within_the_resolution():
     """Each body's faces along its principal axes move by at most half the resolution, the points between stretched
     with them; bodies are drawn apart."""

@@ -209,6 +209,10 @@ def test_table_resumes_and_records_failures(tmp_path, monkeypatch):
     again = T.rescore(tmp_path)  # scored anew from the saved reports, nothing run
     assert len(again) == 6 and len(calls) == 6
     assert json.loads((tmp_path / "table.json").read_text())["rows"] == saved["rows"]
+    assert saved["level"] == "trajectory"
+    with pytest.raises(CausalGSError, match="of the trajectory level, not of the trajectory, rigid tracks level"):
+        T.run_table(tmp_path, T.TableConfig(only=("control", "outside"), rigid=True))  # rows of two measurements
+    assert len(calls) == 6
 
 
 def test_the_repair_is_judged_on_the_error_above_the_noise_floor():

@@ -137,10 +137,10 @@ def test_a_stopped_fit_resumes_and_other_tables_are_refused(tmp_path, monkeypatc
     assert rows[0]["first_ok"]
     from causalgs.discover.table import TableConfig, run_table
 
-    with pytest.raises(CausalGSError, match="a video-level table, not a trajectory-level one"):
+    with pytest.raises(CausalGSError, match="of the video level, not of the trajectory level"):
         run_table(tmp_path, TableConfig(only=("control: clean",)))
     traj = tmp_path / "traj"
     traj.mkdir()
     (traj / "table.json").write_text(json.dumps({"rows": []}))
-    with pytest.raises(CausalGSError, match="a trajectory-level table, not a video-level one"):
+    with pytest.raises(CausalGSError, match="of the trajectory level, not of the video level"):
         V.run_video_table(traj, cfg)
