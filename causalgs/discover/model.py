@@ -168,15 +168,15 @@ class PhysicsModel:
             raise CausalGSError(f"'{name}' is not a parameter of the model ({', '.join(self.names)})")
         return self.names.index(name)
 
-    def pinned(self, theta: torch.Tensor, names) -> dict[str, str]:
-        """The bounded effect parameters among ``names`` that ``theta`` holds at a bound ("upper" or "lower": the
-        sigmoid within :data:`PINNED` of 0 or 1). There the rollout no longer moves with the parameter, so its
-        linearised standard error collapses to nothing and says nothing: the data asks for more than the model
-        allows."""
+    def pinned(self, theta: torch.Tensor, names=None) -> dict[str, str]:
+        """The bounded parameters among ``names`` (default: all) that ``theta`` holds at a bound ("upper" or
+        "lower": the sigmoid within :data:`PINNED` of 0 or 1): a stiffness or Poisson ratio at an end of its range,
+        a bounded effect parameter. There the rollout no longer moves with the parameter, so its linearised standard
+        error collapses to nothing and says nothing: the data asks for more than the model allows."""
         out = {}
-        for name in names:
+        for name in self.names if names is None else names:
             k = self.knobs[self.index(name)]
-            if k.kind == "effect" and k.lower is not None and k.upper is not None:
+            if k.kind in ("E", "nu") or (k.kind == "effect" and k.lower is not None and k.upper is not None):
                 s = float(torch.sigmoid(torch.as_tensor(theta[self.index(name)], dtype=torch.float64)))
                 if s > 1 - PINNED:
                     out[name] = "upper"

@@ -177,6 +177,13 @@ def markdown(report: dict) -> str:
                             if src.get("shape_resolution_m") else "")
                          + " carried through the fit)" + ("" if starts is None else
                                                f"; {starts} refit start(s) within the profile threshold"))  # fmt: skip
+            held = d.get("at_bounds") or {}
+            if held:
+                vals = d.get("base_after", {})
+                L.append("  - held at an end of its range in the refit: "
+                         + ", ".join(f"{p} = {vals.get(p, float('nan')):.4g} ({side})" for p, side in held.items())
+                         + ". The data trade it against the effect; the interval holds given that value, and the "
+                           "effect's parameter may be biased by it")  # fmt: skip
             for r in d.get("runners_up", []):
                 if r["passed"]:
                     how = {"held-out frames": "told apart on the held-out frames",

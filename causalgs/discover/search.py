@@ -923,6 +923,9 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
                            for o, o_st in refits if o.key != c.key and o.key in scores],
             "base_before": current.model.values(current.fit.theta),
             "base_after": st.model.values(st.fit.theta),
+            # base parameters the refit holds at an end of their range: the named values trade against them, and
+            # the interval, which moves the free parameters only, holds given them
+            "at_bounds": {p: side for p, side in st.model.pinned(st.fit.theta).items() if p not in c.params},
             "spec": st.model.spec_at(st.fit.theta),
         })  # fmt: skip
         current = st

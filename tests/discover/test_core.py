@@ -110,6 +110,14 @@ def test_a_viscosity_is_bounded_where_its_substep_would_outrun_the_elastic_one()
     assert m.pinned(th, ["damping.eta"]) == {"damping.eta": "upper"}
     th[i] = -8.0
     assert m.pinned(th, ["damping.eta"]) == {"damping.eta": "lower"}
+    # the base's own ranges too: a Poisson ratio at 0.45 (the rigid-tracks damping landing, seed 0, traded ν there
+    # against η), a stiffness at its floor; the throw is unbounded
+    name = m.obs.names[0]
+    th = m.initial(E=3e4, nu=0.449999)
+    assert m.pinned(th) == {f"{name}.nu": "upper"}
+    th = m.initial(E=m.E_range[0], nu=0.3)
+    assert m.pinned(th) == {f"{name}.E": "lower"}
+    assert m.pinned(m.initial(E=3e4, nu=0.3)) == {}
 
 
 def test_stray_particles_are_the_small_groups_apart_from_every_body():

@@ -267,6 +267,9 @@ def test_the_report_says_how_each_other_passer_was_told_apart():
     assert "also passed, told apart on the held-out frames: `force`" in text
     assert "also passed, as good on the held-out frames, told apart by BIC on the fit window: `quadratic_drag`" in text
     assert "damping" not in text
+    assert "held at an end of its range" not in text
+    d["at_bounds"] = {"body 0.E": "lower"}
+    assert "held at an end of its range in the refit: body 0.E = 2.6e+04 (lower)" in markdown(rep)
 
 
 def test_the_report_says_the_measurement_was_refined_and_what_it_gained():
