@@ -120,6 +120,40 @@ def test_a_viscosity_is_bounded_where_its_substep_would_outrun_the_elastic_one()
     assert m.pinned(m.initial(E=3e4, nu=0.3)) == {}
 
 
+def test_a_calibration_that_ends_at_a_bound_is_tried_again_from_the_middle_of_the_range():
+    """A sigmoid's slope vanishes at its ends, so a parameter pushed to a bound stays there: the best fit holding a
+    bounded parameter there is calibrated once more from the middle of its range, and both are kept."""
+    from causalgs import _ti
+    from causalgs.discover.calibrate import Fit
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.search import DiscoverConfig, unpin
+
+    _ti.init("cpu", "float32")
+    m = PhysicsModel(_flight(), "gravity;damping:eta=30;walls", ("damping.eta",), res=16)
+    nu = m.index(f"{m.obs.names[0]}.nu")
+
+    class Journal:
+        def __init__(self):
+            self.calls = []
+
+        def calibrate(self, name, model, theta, **options):
+            self.calls.append((name, theta.clone()))
+            return Fit(theta, 0.5, 1, 3e4)
+
+    j = Journal()
+    free = [Fit(m.initial(E=3e4, nu=0.3), 1.0, 1, 3e4)]
+    assert unpin(j, "round 1/damping", m, free, DiscoverConfig()) == free and not j.calls
+    stuck = m.initial(E=3e4, nu=0.449999)
+    worse = Fit(m.initial(E=1e5, nu=0.3), 2.0, 1, 1e5)
+    fits = unpin(j, "round 1/damping", m, [Fit(stuck, 1.0, 1, 3e4), worse], DiscoverConfig())
+    assert len(fits) == 3 and min(fits, key=lambda f: f.loss).loss == 0.5
+    (name, theta), = j.calls
+    assert name == "round 1/damping/unpinned"
+    assert theta[nu] == 0.0 and math.isclose(m.values(theta)[m.names[nu]], 0.275)  # the range's middle
+    keep = [i for i in range(len(theta)) if i != nu]
+    assert torch.equal(theta[keep], stuck[keep])  # from the best fit, not the other start
+
+
 def test_stray_particles_are_the_small_groups_apart_from_every_body():
     from causalgs.discover.video import stray_particles
 
