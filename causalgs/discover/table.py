@@ -19,6 +19,9 @@ At this (trajectory) level the measurement is the project's own MPM at the model
 observed: the table tests the discovery logic — the screen, the refits, the gate, the uncertainty — on data whose
 answer is known, with noise and nuisances as the only departures from the model. The departure of a real scene
 from any grid (discretisation, tracking) is what a fitted run's discovery faces (``causalgs discover RUN``).
+With ``rigid`` (``--rigid-tracks``) every body is seen through its best rigid motion, as tracks from video see it,
+and discovered through that lens: what such tracks hide (an elastic wobble, a permanent squash) is tested on its
+own, apart from the errors of tracking images.
 """
 
 from __future__ import annotations
