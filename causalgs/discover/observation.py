@@ -309,11 +309,11 @@ def synthesize(
         vol.append(np.full(len(pick), volume[b] / len(pick)))
     idx = np.concatenate(idx)
     x = run["x"][:, idx].astype(np.float64)
+    one_pattern_a_body = np.eye(len(setup.bodies))
     if rigid:
         every = torch.from_numpy(run["x"].astype(np.float64))
-        mix = torch.nn.functional.one_hot(torch.from_numpy(owner.astype(np.int64)), len(setup.bodies)).double()
-        seen = rigid_projection(every, every[0], mix, torch.ones(len(owner), dtype=torch.float64))
-        x = seen[:, idx].numpy()
+        mix = torch.from_numpy(one_pattern_a_body[owner])
+        x = rigid_projection(every, every[0], mix, torch.ones(len(owner), dtype=torch.float64))[:, idx].numpy()
     x = x + noise * rng.standard_normal(x.shape)
     x[0] += rest_noise * rng.standard_normal(x[0].shape)
     eff = run["effects"]
@@ -336,5 +336,5 @@ def synthesize(
         times=np.arange(frames) / fps, x=x, vol=np.concatenate(vol), body=np.concatenate(body),
         observed=observed if observed is not None else max(3, round(frames * 67 / 89)), lo=setup.lo, hi=setup.hi,
         density=dens, ground=ground, noise=noise if noise > 0 else None, names=[b.name for b in setup.bodies],
-        truth=truth, mix=np.eye(len(setup.bodies))[np.concatenate(body)] if rigid else None,
+        truth=truth, mix=one_pattern_a_body[np.concatenate(body)] if rigid else None,
     )  # fmt: skip
