@@ -22,7 +22,12 @@ held-out cameras scored it at a median 31.7 dB per frame against 26.4. What it l
 mostly the body's own deformation, which one rigid motion per pattern cannot follow (the true block departs from its
 best rigid motion by up to 5.7 mm at the impact and 2–3.5 mm in the wobble after it). A free affine correction per
 pattern, tried on the same frames, followed the impact a little closer (3–6 mm) and then drifted to 9–11 mm after
-it: the images of a plain block do not pin down its stretch.
+it: the images of a plain block do not pin down its stretch. A stretch about each pattern's centroid, with the
+tracks' rigid part (:func:`~causalgs.discover.observation.rigid_projection`) taken as the measurement, was tried on
+the plastic landing, where the block flattens to a pancake (5 cm high, 34 × 31 cm across): it raised the held-out
+PSNR after the impact from 22 to 24 dB, but moved the rigid part further from the truth's (12–16 → 17–20 mm after
+the impact); on the elastic landing it made the impact worse (3.9 → 8.6 mm) and the bounce after it better (1.6–2.0
+→ 1.1–1.3 mm). Neither is kept.
 
 The result (:class:`Tracks`) is each pattern's affine motion at every observed frame and the PSNR of the tracked
 and the refined motion on the frame's held-out cameras (the dataset's val split; its training cameras where it has
