@@ -27,7 +27,7 @@ tracks' rigid part (:func:`~causalgs.discover.observation.rigid_projection`) tak
 the plastic landing, where the block flattens to a pancake (5 cm high, 34 × 31 cm across): it raised the held-out
 PSNR after the impact from 22 to 24 dB, but moved the rigid part further from the truth's (12–16 → 17–20 mm after
 the impact); on the elastic landing it made the impact worse (3.9 → 8.6 mm) and the bounce after it better (1.6–2.0
-→ 1.1–1.3 mm). Neither is kept.
+→ 1.1–1.3 mm). The refinement stays rigid.
 
 The result (:class:`Tracks`) is each pattern's affine motion at every observed frame and the PSNR of the tracked
 and the refined motion on the frame's held-out cameras (the dataset's val split; its training cameras where it has
