@@ -101,7 +101,8 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     free force would help, but no named effect passes).
 
     Writes --out/report.json, report.md, error.png (error per frame before and after), residuals.png (held-out
-    residual heat on the particles), paths.png and discover.json (the options); for a run also images.png (held-out
+    residual heat on the particles), paths.png, trajectories.npz (the measurement and both simulations, every
+    point at every frame) and discover.json (the options); for a run also images.png (held-out
     cameras at held-out frames, rendered before and after) and, when an effect is found, config.toml (the run's
     config with it added: `causalgs fit DATA --config DIR/config.toml` refits the scene). Every calibration is
     saved as it finishes (progress.json): a stopped run goes on with --resume, redoing none of them.

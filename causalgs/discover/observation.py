@@ -60,6 +60,9 @@ class Observation:
     # a rigid lens cannot follow a deforming body (:func:`causalgs.discover.search.lens_blind`). None: the noise
     # alone. Residuals are weighed by :meth:`residual_scale`.
     track_error: np.ndarray | None = None
+    # [T, P, 3] synthetic scenes: the positions before the noise, to score predictions against the truth (the
+    # hidden-effect tables); never used by discovery itself
+    clean: np.ndarray | None = None
 
     def __post_init__(self):
         self.times = np.asarray(self.times, dtype=np.float64).reshape(-1)
@@ -94,6 +97,11 @@ class Observation:
         self.shape_resolution = float(self.shape_resolution)
         if not (np.isfinite(self.shape_resolution) and self.shape_resolution >= 0):
             raise CausalGSError(f"observation: shape_resolution = {self.shape_resolution} must be a length >= 0 (m)")
+        if self.clean is not None:
+            self.clean = np.asarray(self.clean, dtype=np.float64)
+            if self.clean.shape != self.x.shape or not np.isfinite(self.clean).all():
+                raise CausalGSError(f"observation: 'clean' has shape {list(self.clean.shape)} or non-finite values, "
+                                    f"expected finite [{T}, {P}, 3]")
         if self.mix is not None:
             self.mix = np.asarray(self.mix, dtype=np.float64)
             if self.mix.ndim != 2 or self.mix.shape[0] != P or self.mix.shape[1] < 1:
@@ -141,6 +149,8 @@ class Observation:
         extra = {"truth_json": np.array(_json(self.truth))} if self.truth is not None else {}
         if self.mix is not None:
             extra["mix"] = self.mix
+        if self.clean is not None:
+            extra["clean"] = self.clean
         write_npz(Path(path), times=self.times, x=self.x, vol=self.vol, body=self.body,
                   observed=np.int64(self.observed), lo=np.array(self.lo), hi=np.array(self.hi),
                   density=np.float64(self.density), ground=np.float64(np.nan if self.ground is None else self.ground),
@@ -182,7 +192,7 @@ def load_observation(path) -> Observation:
             density=float(d.get("density", 1000.0)), ground=opt("ground"), noise=opt("noise"),
             names=[str(s) for s in d["names"]] if "names" in d else [],
             truth=json.loads(str(d["truth_json"])) if "truth_json" in d else None, mix=d.get("mix"),
-            shape_resolution=float(d.get("shape_resolution", 0.0)),
+            shape_resolution=float(d.get("shape_resolution", 0.0)), clean=d.get("clean"),
         )  # fmt: skip
     except CausalGSError as e:
         raise CausalGSError(f"{path}: {e}") from None
@@ -314,6 +324,7 @@ def synthesize(
         every = torch.from_numpy(run["x"].astype(np.float64))
         mix = torch.from_numpy(one_pattern_a_body[owner])
         x = rigid_projection(every, every[0], mix, torch.ones(len(owner), dtype=torch.float64))[:, idx].numpy()
+    clean = x.copy()
     x = x + noise * rng.standard_normal(x.shape)
     x[0] += rest_noise * rng.standard_normal(x[0].shape)
     eff = run["effects"]
@@ -336,5 +347,5 @@ def synthesize(
         times=np.arange(frames) / fps, x=x, vol=np.concatenate(vol), body=np.concatenate(body),
         observed=observed if observed is not None else max(3, round(frames * 67 / 89)), lo=setup.lo, hi=setup.hi,
         density=dens, ground=ground, noise=noise if noise > 0 else None, names=[b.name for b in setup.bodies],
-        truth=truth, mix=one_pattern_a_body[np.concatenate(body)] if rigid else None,
+        truth=truth, mix=one_pattern_a_body[np.concatenate(body)] if rigid else None, clean=clean,
     )  # fmt: skip

@@ -6,7 +6,10 @@
   follow, and err by about as much);
 - ``residuals.png``: the residual heat on the particles over the held-out frames, before and after, seen from the
   side and from above, on one colour scale;
-- ``paths.png``: the measured centroid path of every body against the simulated ones before and after.
+- ``paths.png``: the measured centroid path of every body against the simulated ones before and after;
+- ``trajectories.npz``: the measurement and both simulations, every point at every frame (``times`` [T], ``x``,
+  ``before``, ``after`` [T, P, 3] in metres, ``body`` [P], ``observed``: frames from there on were held out), the
+  simulations seen as the measurement sees them and starting from its first frame.
 
 Every file is written atomically; the report's numbers are the ones :func:`causalgs.discover.search.discover`
 returned, nothing recomputed here.
@@ -21,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from causalgs.discover.observation import Observation
-from causalgs.io import write_bytes, write_json, write_text
+from causalgs.io import write_bytes, write_json, write_npz, write_text
 
 
 def _plt():
@@ -376,11 +379,20 @@ def finite(obj):
 
 
 def write_outputs(out, report: dict, traj: dict, obs: Observation) -> None:
-    """``report.json``, ``report.md`` and the three plots in ``out``."""
+    """``report.json``, ``report.md``, the three plots and ``trajectories.npz`` in ``out``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    write_npz(out / "trajectories.npz", **trajectories(traj, obs))
     write_json(out / "report.json", finite(report))
     write_text(out / "report.md", markdown(report))
     plot_error(report, traj, obs, out / "error.png")
     plot_residuals(traj, obs, out / "residuals.png")
     plot_paths(report, traj, obs, out / "paths.png")
+
+
+def trajectories(traj: dict, obs: Observation) -> dict[str, np.ndarray]:
+    """The arrays of ``trajectories.npz``: ``traj``'s simulations (frames 1..T-1) with the measured first frame,
+    where every rollout starts, put before them."""
+    full = {k: np.concatenate([obs.x[:1], np.asarray(traj[k], dtype=np.float64)]) for k in ("before", "after")}
+    return {"times": obs.times, "x": obs.x, "body": obs.body, "observed": np.int64(obs.observed), **full}
+

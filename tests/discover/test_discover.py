@@ -155,6 +155,7 @@ def _fake_report(effect: str | None, value: float = 0.0, verdict: str | None = N
 
 
 def test_table_rows_score_what_was_found_against_what_was_hidden():
+    import causalgs.discover.table as T
     from causalgs.discover.table import BY_NAME, summary
     from causalgs.discover.table import score as score_row
 
@@ -175,6 +176,12 @@ def test_table_rows_score_what_was_found_against_what_was_hidden():
     s = summary(rows)
     assert s["hidden_first"] == 0.5 and s["controls_no_effect"] == 1.0 and s["param_within_10pct"] == 1.0
     assert s["interval_covers_truth"] == 0.0
+    assert row["future_truth_before_m"] is None and s["future_drop_vs_truth_ge_50pct"] is None  # no truth given
+    truth = {"future_rms_before_m": 0.004, "future_rms_after_m": 0.0008}
+    scored = score_row(drag, {**_fake_report("linear_drag", 0.63), "truth_error": truth})
+    assert math.isclose(scored["future_truth_drop"], 0.8)
+    assert summary([{**scored, "seed": 0}])["future_drop_vs_truth_ge_50pct"] == 1.0
+    assert "| 4.0 → 0.8 mm (-80%) |" in T.markdown([{**scored, "seed": 0}])
 
 
 def test_table_resumes_and_records_failures(tmp_path, monkeypatch):
@@ -193,6 +200,7 @@ def test_table_resumes_and_records_failures(tmp_path, monkeypatch):
     def fake_observe(case, seed, cfg):
         obs = _throw(0.0)
         obs.truth = {"scene_spec": case.scene, "bodies": [{"E": 3e4, "velocity": [0.6, 0, 1.4], "omega": [0, 0, 0]}]}
+        obs.clean = obs.x + 0.001  # the stand-in predicts the measurement: 1 mm off the truth, in displacement none
         return obs
 
     monkeypatch.setattr(T, "discover", fake_discover)
@@ -203,6 +211,11 @@ def test_table_resumes_and_records_failures(tmp_path, monkeypatch):
     failed = [r for r in rows if r["verdict"].startswith("failed")]
     assert len(failed) == 1 and "blew up" in failed[0]["verdict"]
     assert (tmp_path / "table.md").is_file() and (tmp_path / "control-clean-s0" / "report.md").is_file()
+    with np.load(tmp_path / "control-clean-s0" / "trajectories.npz") as z:  # frame 0 + the simulated frames
+        assert z["before"].shape == z["x"].shape == z["after"].shape and int(z["observed"]) == _throw(0.0).observed
+        assert np.array_equal(z["before"], z["x"])
+    clean = next(r for r in rows if r["case"] == "control: clean")
+    assert clean["future_truth_before_m"] < 1e-15 and clean["future_truth_after_m"] < 1e-15
     again = T.run_table(tmp_path, cfg)  # every row is there: nothing runs again
     assert len(again) == 6 and len(calls) == 6
     saved = json.loads((tmp_path / "table.json").read_text())
@@ -214,6 +227,40 @@ def test_table_resumes_and_records_failures(tmp_path, monkeypatch):
     with pytest.raises(CausalGSError, match="of the trajectory level, not of the trajectory, rigid tracks level"):
         T.run_table(tmp_path, T.TableConfig(only=("control", "outside"), rigid=True))  # rows of two measurements
     assert len(calls) == 6
+
+
+def test_predictions_are_scored_against_the_noise_free_truth(tmp_path):
+    """A synthetic measurement keeps its positions before the noise (``clean``, saved with it); the tables score the
+    predictions' displacements against them, so the noise of the first frame, where every rollout starts, costs
+    nothing, and a held-out error can drop below the noise."""
+    from causalgs.discover.observation import load_observation, synthesize
+    from causalgs.discover.table import truth_error
+    from causalgs.errors import CausalGSError
+
+    obs = synthesize("toss", "gravity;ground:mu=0.3;walls", seed=0, points=150, frames=8, fps=24.0, noise=0.002,
+                     rest_noise=0.003, reference_res=12)  # fmt: skip
+    noise = obs.x - obs.clean
+    assert np.std(noise[1:]) == pytest.approx(0.002, rel=0.1)
+    assert np.std(noise[0]) == pytest.approx(math.hypot(0.002, 0.003), rel=0.1)
+    obs.save(tmp_path / "obs.npz")
+    assert np.array_equal(load_observation(tmp_path / "obs.npz").clean, obs.clean)
+    k = obs.observed
+    exact = obs.clean - obs.clean[:1] + obs.x[:1]  # the truth's motion, started from the measured first frame
+    off = exact.copy()
+    off[k:] += np.array([0.003, 0.0, 0.0])
+    off[k:, :10] += np.array([0.0, 0.0, -0.004])
+    e = truth_error(exact, off, obs.clean, k)
+    assert max(e["fit_rms_before_m"], e["future_rms_before_m"], e["fit_rms_after_m"]) < 1e-12
+    ref = 0.0  # a plain reference: the mean square over every held-out frame, point and coordinate
+    for t in range(k, len(obs.times)):
+        for p in range(obs.points):
+            for c in range(3):
+                ref += ((off[t, p, c] - off[0, p, c]) - (obs.clean[t, p, c] - obs.clean[0, p, c])) ** 2
+    assert e["future_rms_after_m"] == pytest.approx(math.sqrt(ref / ((len(obs.times) - k) * obs.points * 3)))
+    with pytest.raises(CausalGSError, match="'clean' has shape") as bad:
+        Observation(times=obs.times, x=obs.x, vol=obs.vol, body=obs.body, observed=k, lo=obs.lo, hi=obs.hi,
+                    clean=obs.clean[:, :5])  # fmt: skip
+    assert "\n" not in str(bad.value)
 
 
 def test_the_repair_is_judged_on_the_error_above_the_noise_floor():

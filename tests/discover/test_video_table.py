@@ -50,6 +50,30 @@ def test_tracking_error_against_a_plain_reference(tmp_path):
     assert V.tracking_error(SimpleNamespace(x=stray), tmp_path) is None
 
 
+def test_predictions_against_the_truth_at_the_matched_particles(tmp_path):
+    """The discovery's saved simulations against the truth's motion at the tracked particles matched to a true
+    material point: displacement errors over the held-out frames, before and after (a plain reference)."""
+    rng = np.random.default_rng(1)
+    frames, n, observed = 7, 30, 5
+    gt = rng.uniform(-0.2, 0.2, (1, n, 3)) + np.linspace(0, 0.2, frames)[:, None, None] * np.array([1.0, 0.2, 0.0])
+    (tmp_path / "gt").mkdir()
+    np.savez(tmp_path / "gt" / "motion.npz", particles=gt)
+    disc = tmp_path / "discover"
+    disc.mkdir()
+    assert V.prediction_error(disc, tmp_path) is None  # nothing saved
+    pick = rng.choice(n, 12, replace=False)
+    x = np.concatenate([gt[:, pick] + 0.002, np.full((frames, 1, 3), 5.0)], axis=1)  # + one unmatched point
+    before = x + rng.normal(0, 0.004, x.shape) * (np.arange(frames) >= 1)[:, None, None]
+    after = x + rng.normal(0, 0.001, x.shape) * (np.arange(frames) >= 1)[:, None, None]
+    np.savez(disc / "trajectories.npz", x=x, before=before, after=after, observed=np.int64(observed))
+    got = V.prediction_error(disc, tmp_path)
+    for name, sim in (("before", before), ("after", after)):
+        e = (sim[:, :12] - sim[:1, :12]) - (gt[:, pick] - gt[:1, pick])
+        assert got[f"future_rms_{name}_m"] == pytest.approx(float(np.sqrt((e[observed:] ** 2).mean())), rel=1e-12)
+        assert got[f"fit_rms_{name}_m"] == pytest.approx(float(np.sqrt((e[1:observed] ** 2).mean())), rel=1e-12)
+    assert got["future_rms_after_m"] < got["future_rms_before_m"]
+
+
 def _recorders(monkeypatch, calls, *, fail=()):
     """Stand-ins for the three stages that write what the real ones leave behind."""
 
