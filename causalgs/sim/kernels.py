@@ -68,7 +68,7 @@ def _weight_grad(fx, W, i: ti.template(), j: ti.template(), k: ti.template()):
 
 
 @ti.kernel
-def particle_box(x: ti.template(), s: ti.i32, n: ti.i32, lo: ti.math.vec3, inv_dx: float, shape: ti.template(),
+def particle_box(x: ti.template(), s: ti.i32, n: ti.i32, lo: ti.template(), inv_dx: float, shape: ti.template(),
                  box: ti.template()):  # fmt: skip
     """The box of grid nodes the particles' stencils reach: ``box`` = [lo_i, lo_j, lo_k, hi_i, hi_j, hi_k) (hi
     exclusive). Every grid kernel loops over this box only: nodes outside it hold stale values that no kernel of
@@ -79,7 +79,7 @@ def particle_box(x: ti.template(), s: ti.i32, n: ti.i32, lo: ti.math.vec3, inv_d
             box[d + 3] = 0
     ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
-        b = _base((x[p, s] - lo) * inv_dx, shape)
+        b = _base((x[p, s] - lo[0]) * inv_dx, shape)
         for d in ti.static(range(3)):
             ti.atomic_min(box[d], b[d])
             ti.atomic_max(box[d + 3], b[d] + 3)
@@ -141,14 +141,14 @@ def p2g(
     grid_m: ti.template(),
     s: ti.i32,
     n: ti.i32,
-    lo: ti.math.vec3,
+    lo: ti.template(),
     inv_dx: float,
 ):
     """Scatter mass and affine momentum m v + A (x_i − x_p) to the 3×3×3 stencil (independent of the material and
     the effects, so it compiles once)."""
     ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
-        base, fx, W = _stencil(x[p, s], lo, inv_dx, grid_m.shape)
+        base, fx, W = _stencil(x[p, s], lo[0], inv_dx, grid_m.shape)
         mass = density[p] * vol[p]
         mv = mass * v[p, s]
         A = affine[p]
@@ -171,7 +171,7 @@ def p2g_adjoint(
     grid_m: ti.template(),
     s: ti.i32,
     n: ti.i32,
-    lo: ti.math.vec3,
+    lo: ti.template(),
     inv_dx: float,
 ):
     """The adjoint of :func:`p2g`, written out: a gather of the grid adjoints into x, v, affine and density.
@@ -183,7 +183,7 @@ def p2g_adjoint(
     Checked against Taichi's autodiff of :func:`p2g` and finite differences (tests/sim)."""
     ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
-        base, fx, W = _stencil(x[p, s], lo, inv_dx, grid_m.shape)
+        base, fx, W = _stencil(x[p, s], lo[0], inv_dx, grid_m.shape)
         mass = density[p] * vol[p]
         vp = v[p, s]
         A = affine[p]
@@ -215,7 +215,7 @@ def grid_update(
     grid_m: ti.template(),
     grid_v_out: ti.template(),
     dt: float,
-    lo: ti.math.vec3,
+    lo: ti.template(),
     dx: float,
     effects: ti.template(),
     box: ti.template(),
@@ -229,7 +229,7 @@ def grid_update(
         m = grid_m[I]
         has = m > MASS_EPS
         v = grid_v_in[I] / ti.select(has, m, 1.0)
-        xi = lo + ti.cast(I, float) * dx
+        xi = lo[0] + ti.cast(I, float) * dx
         v = effects.apply(v, xi, I, dt, dx, ti.static(grid_m.shape))
         grid_v_out[I] = ti.select(has, v, ti.Vector.zero(float, 3))
 
@@ -243,13 +243,13 @@ def g2p(
     s: ti.i32,
     n: ti.i32,
     dt: float,
-    lo: ti.math.vec3,
+    lo: ti.template(),
     inv_dx: float,
 ):
     """Gather v and the APIC matrix C = 4/dx² Σ w v_i (x_i − x_p)ᵀ into slot s+1; advect x with the new v."""
     ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
-        base, fx, W = _stencil(x[p, s], lo, inv_dx, grid_v_out.shape)
+        base, fx, W = _stencil(x[p, s], lo[0], inv_dx, grid_v_out.shape)
         new_v = ti.Vector.zero(float, 3)
         new_C = ti.Matrix.zero(float, 3, 3)
         for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
@@ -273,7 +273,7 @@ def g2p_adjoint(
     s: ti.i32,
     n: ti.i32,
     dt: float,
-    lo: ti.math.vec3,
+    lo: ti.template(),
     inv_dx: float,
 ):
     """The adjoint of :func:`g2p`, written out: scatter the adjoints of x, v, C at slot s+1 into the grid velocity
@@ -284,7 +284,7 @@ def g2p_adjoint(
     dL/dx += dL/dx' + inv_dx dL/dfx. Checked against Taichi's autodiff of :func:`g2p` and finite differences."""
     ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
-        base, fx, W = _stencil(x[p, s], lo, inv_dx, grid_v_out.shape)
+        base, fx, W = _stencil(x[p, s], lo[0], inv_dx, grid_v_out.shape)
         gx = x.grad[p, s + 1]
         a = v.grad[p, s + 1] + dt * gx
         G = C.grad[p, s + 1]
@@ -383,13 +383,13 @@ def slot_to_rows(
 
 
 @ti.kernel
-def frame_stats(x: ti.template(), v: ti.template(), F: ti.template(), s: ti.i32, n: ti.i32, lo: ti.math.vec3,
+def frame_stats(x: ti.template(), v: ti.template(), F: ti.template(), s: ti.i32, n: ti.i32, lo: ti.template(),
                 inv_dx: float, shape: ti.template(), stats: ti.template()):  # fmt: skip
     """stats = [Σ |x|+|v|+|F| (non-finite if any entry is), max |v|, particles outside the grid, 0]."""
     for i in range(stats.shape[0]):
         stats[i] = 0.0
     for p in range(n):
-        Xp = (x[p, s] - lo) * inv_dx
+        Xp = (x[p, s] - lo[0]) * inv_dx
         stats[0] += x[p, s].norm() + v[p, s].norm() + F[p, s].norm()
         ti.atomic_max(stats[1], v[p, s].norm())
         out = 0

@@ -204,7 +204,11 @@ class Simulator:
         the slot bookkeeping and uploads the effect parameters."""
         st, g, geo = self.store, self.grid, self.geo
         self._grid(s, dt)
-        kernels.g2p(st.x_seg, st.v_seg, st.C_seg, g.v_out, s, st.n, dt, geo.lo, geo.inv_dx)
+        kernels.g2p(st.x_seg, st.v_seg, st.C_seg, g.v_out, s, st.n, dt, self._lo(), geo.inv_dx)
+
+    def _lo(self):
+        """The grid's origin field, holding this simulator's ``lo`` (grid fields are shared by shape)."""
+        return self.grid.origin(self.geo.lo)
 
     def _stress_args(self, s: int, dt: float) -> tuple:
         st = self.store
@@ -214,7 +218,7 @@ class Simulator:
     def _p2g_args(self, s: int) -> tuple:
         st, g, geo = self.store, self.grid, self.geo
         v = st.vc_seg if self.effects.kernel.has_particle else st.v_seg
-        return (st.x_seg, v, st.vol, st.density, st.mpm_affine, g.v_in, g.m, s, st.n, geo.lo, geo.inv_dx)
+        return (st.x_seg, v, st.vol, st.density, st.mpm_affine, g.v_in, g.m, s, st.n, self._lo(), geo.inv_dx)
 
     def _particle_args(self, s: int, dt: float) -> tuple:
         st = self.store
@@ -223,13 +227,13 @@ class Simulator:
     def _grid(self, s: int, dt: float) -> None:
         """The grid of substep ``s``: the particles' box, clear, stress, P2G, grid update."""
         g, geo = self.grid, self.geo
-        kernels.particle_box(self.store.x_seg, s, self.store.n, geo.lo, geo.inv_dx, geo.shape, g.box)
+        kernels.particle_box(self.store.x_seg, s, self.store.n, self._lo(), geo.inv_dx, geo.shape, g.box)
         kernels.clear_grid(g.v_in, g.m, g.v_out, g.box)
         kernels.stress(*self._stress_args(s, dt))
         if self.effects.kernel.has_particle:
             kernels.particle_terms(*self._particle_args(s, dt))
         kernels.p2g(*self._p2g_args(s))
-        kernels.grid_update(g.v_in, g.m, g.v_out, dt, geo.lo, geo.dx, self.effects.kernel, g.box)
+        kernels.grid_update(g.v_in, g.m, g.v_out, dt, self._lo(), geo.dx, self.effects.kernel, g.box)
 
     def _boundary(self) -> None:
         """Start a new segment if the live one is full: copy its last slot into slot 0 (and checkpoint it)."""
@@ -286,7 +290,7 @@ class Simulator:
     def _stats(self) -> np.ndarray:
         st, g, geo = self.store, self.grid, self.geo
         x, v, _, F = self._seg()
-        kernels.frame_stats(x, v, F, self.slot, st.n, geo.lo, geo.inv_dx, geo.shape, g.stats)
+        kernels.frame_stats(x, v, F, self.slot, st.n, self._lo(), geo.inv_dx, geo.shape, g.stats)
         return g.stats.to_numpy().astype(np.float64)
 
     def stable_dt(self, c: float | None = None) -> float:
@@ -431,8 +435,8 @@ class Simulator:
         self._grid(s, dt)
         kernels.clear_grid_grad(g.v_in, g.m, g.v_out, g.box)
         st.zero_grad(["mpm_affine"])
-        kernels.g2p_adjoint(st.x_seg, st.v_seg, st.C_seg, g.v_out, s, st.n, dt, geo.lo, geo.inv_dx)
-        kernels.grid_update.grad(g.v_in, g.m, g.v_out, dt, geo.lo, geo.dx, self.effects.kernel, g.box)
+        kernels.g2p_adjoint(st.x_seg, st.v_seg, st.C_seg, g.v_out, s, st.n, dt, self._lo(), geo.inv_dx)
+        kernels.grid_update.grad(g.v_in, g.m, g.v_out, dt, self._lo(), geo.dx, self.effects.kernel, g.box)
         kernels.p2g_adjoint(*self._p2g_args(s))
         if self.effects.kernel.has_particle:
             kernels.particle_terms.grad(*self._particle_args(s, dt))

@@ -158,7 +158,7 @@ def test_hand_written_p2g_adjoint_equals_autodiff(ti64, mk):
     gen = torch.Generator().manual_seed(3)
     sim.set_state(inp["x0"] + 0.01 * torch.randn(n, 3, generator=gen, dtype=D), inp["v0"])
     st.from_torch("mpm_affine", torch.randn(n, 3, 3, generator=gen, dtype=D))
-    kernels.particle_box(st.x_seg, 0, n, sim.geo.lo, sim.geo.inv_dx, sim.geo.shape, g.box)
+    kernels.particle_box(st.x_seg, 0, n, sim._lo(), sim.geo.inv_dx, sim.geo.shape, g.box)
     g.v_in.grad.from_torch(torch.randn(*g.v_in.shape, 3, generator=gen, dtype=D))
     g.m.grad.from_torch(torch.randn(*g.m.shape, generator=gen, dtype=D))
     out = []
@@ -180,7 +180,7 @@ def test_hand_written_g2p_adjoint_equals_autodiff(ti64, mk):
     n = st.n
     gen = torch.Generator().manual_seed(4)
     sim.set_state(inp["x0"] + 0.01 * torch.randn(n, 3, generator=gen, dtype=D), inp["v0"])
-    kernels.particle_box(st.x_seg, 0, n, geo.lo, geo.inv_dx, geo.shape, g.box)
+    kernels.particle_box(st.x_seg, 0, n, sim._lo(), geo.inv_dx, geo.shape, g.box)
     g.v_out.from_torch(torch.randn(*g.v_out.shape, 3, generator=gen, dtype=D))
     seeds = {"x_seg": (3,), "v_seg": (3,), "C_seg": (3, 3)}
     out = []
@@ -190,7 +190,7 @@ def test_hand_written_g2p_adjoint_equals_autodiff(ti64, mk):
         for k, shape in seeds.items():
             st.from_torch(k, torch.randn(n, *shape, generator=torch.Generator().manual_seed(9), dtype=D), grad=True,
                           slot=1)  # fmt: skip
-        kernel(st.x_seg, st.v_seg, st.C_seg, g.v_out, 0, n, 1e-3, geo.lo, geo.inv_dx)
+        kernel(st.x_seg, st.v_seg, st.C_seg, g.v_out, 0, n, 1e-3, sim._lo(), geo.inv_dx)
         out.append([st.to_torch("x_seg", grad=True, slot=0), g.v_out.grad.to_torch()])
     for a, b, name in zip(*out, ("x", "grid v_out"), strict=True):
         assert torch.allclose(a, b, rtol=1e-12, atol=1e-12 * float(a.abs().max())), name
