@@ -302,3 +302,26 @@ def sim_compile_benchmark(precision: str = "float32", res: int = 32, effects: st
             probe = json.loads(out.stdout.strip().splitlines()[-1])
             rec.update({f"{label}_{k}": v for k, v in probe.items()})
     return rec
+
+
+def discover_benchmark(resolutions: Iterable[int] = (20, 32), repeats: int = 5, frames: int = 30,
+                       fps: float = 24.0, effects: str = "gravity;ground:mu=0.3;walls") -> Iterable[dict]:
+    """One record per grid resolution: the seconds of one discovery rollout (``PhysicsModel.rollout``, no
+    gradient) of the hidden-effect table's ``toss`` landing, the truth's particles on the truth's grid, and the
+    milliseconds per MPM substep it took. Calibrations are hundreds of these (a forward-difference Jacobian is one
+    per parameter), so this is what a discovery's time scales with."""
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.observation import synthesize
+
+    for res in resolutions:
+        obs = synthesize("toss", effects, seed=0, points=1_000_000, frames=frames, fps=fps, reference_res=res)
+        model = PhysicsModel(obs, effects, (), res=res)
+        theta = model.initial()
+        with torch.no_grad():
+            first, median = _median_ms(lambda: model.rollout(theta), repeats)  # noqa: B023
+            before = model.sim.counter
+            model.rollout(theta)
+        substeps = model.sim.counter - before - 1  # the counter moves once per substep and once for the start state
+        yield {"bench": "discover", "grid": res, "points": obs.points, "frames": frames, "fps": fps,
+               "substeps": substeps, "rollout_ms": round(median, 2), "first_rollout_ms": round(first, 1),
+               "ms_per_substep": round(median / max(substeps, 1), 4), "repeats": repeats}  # fmt: skip

@@ -109,6 +109,26 @@ def sim(counts, grids, repeats, segment, compile_, as_json, device, precision):
         Console(stderr=True).print(table)
 
 
+@bench.command(name="discover")
+@click.option("--grids", default="20,43", show_default=True,
+              help="Grid resolutions (cells over the scene's box), comma-separated: 20 is the trajectory table's, "
+              "43 the video table's.")  # fmt: skip
+@click.option("--repeats", type=click.IntRange(1, 1000), default=5, show_default=True, help="Timed runs per case.")
+@click.option("--frames", type=click.IntRange(2, 1000), default=30, show_default=True,
+              help="Frames of the landing (at 24 fps: the trajectory table's window).")  # fmt: skip
+@device_option
+@precision_option
+def discover_bench(grids, repeats, frames, device, precision):
+    """Seconds of one discovery rollout of the hidden-effect table's tossed block (its landing, the truth's
+    particles on the truth's grid) and milliseconds per MPM substep: a discovery runs hundreds of these."""
+    from causalgs import _ti
+    from causalgs.bench import discover_benchmark
+
+    _ti.init(device, precision)
+    for rec in discover_benchmark(_ints(grids, "--grids"), repeats, frames):
+        click.echo(json.dumps(rec))
+
+
 @bench.command(name="fit")
 @click.option("--data", "data_root", type=click.Path(file_okay=False), required=True,
               help="Folder with one dataset per scene (e.g. the output of `causalgs synth all`).")  # fmt: skip

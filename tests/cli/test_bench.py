@@ -25,3 +25,14 @@ def test_bench_sim_help():
     result = CliRunner().invoke(cli, ["bench", "sim", "--help"])
     assert result.exit_code == 0
     assert "checkpoints" in result.output and "--no-compile" in result.output
+
+
+def test_bench_discover_json(ti32):
+    """One record per grid, its rollout timed and its substeps counted (6 frames on a coarse grid)."""
+    args = ["bench", "discover", "--grids", "12", "--repeats", "1", "--frames", "6"]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    (rec,) = [json.loads(line) for line in result.output.splitlines() if line.startswith("{")]
+    assert rec["bench"] == "discover" and rec["grid"] == 12 and rec["frames"] == 6 and rec["points"] > 10
+    assert rec["substeps"] >= 5 and rec["rollout_ms"] > 0
+    assert rec["ms_per_substep"] == pytest.approx(rec["rollout_ms"] / rec["substeps"], rel=1e-2)
