@@ -819,9 +819,12 @@ def test_the_base_is_recalibrated_from_where_a_better_refit_went():
     assert origin == "linear_drag" and new.model is base_model and new.train < 0.1 * current.train
     # The throw itself is not pinned to 1.0: on a free flight the substep's Euler lag (g·dt per second, 0.9 mm a
     # frame at E = 30 kPa on 16 cells) moves with the stiffness through the substep, so a softer body with a higher
-    # throw fits as well (measured on one machine: E 2.75 kPa and v_z 1.041 at 7e-12 cm²). What is known: the base
-    # started from the refit and reaches what no throw of the stuck base does.
-    assert new.train < 1e-3 * current.train and "from the linear_drag" in log[0]
+    # throw fits as well. How far five iterations get along that valley depends on the rollout's float32 rounding:
+    # the error steps with the substep count, which the stiffness sets through the CFL limit, and the forward
+    # differences see those steps (two builds of the same kernels: 2e-11 cm² at E = 400 kPa, and 0.018 cm² at
+    # 52 kPa). What is known: the base started from the refit's parameters (its drag is zero: they are a base state)
+    # fits at least as well as the refit, which no throw of the stuck base does.
+    assert new.train <= refit.train and "from the linear_drag" in log[0]
     same, none = _rebase(refit, [(BY_KEY["linear_drag"], current)], DiscoverConfig(iterations=5), Journal(None, ""),
                          "round 1", log.append)  # fmt: skip
     assert same is refit and none is None and len(log) == 1  # a worse refit is no start for the base
