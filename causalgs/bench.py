@@ -304,7 +304,7 @@ def sim_compile_benchmark(precision: str = "float32", res: int = 32, effects: st
     return rec
 
 
-def discover_benchmark(resolutions: Iterable[int] = (20, 32), repeats: int = 5, frames: int = 30,
+def discover_benchmark(resolutions: Iterable[int] = (20, 43), repeats: int = 5, frames: int = 30,
                        fps: float = 24.0, effects: str = "gravity;ground:mu=0.3;walls") -> Iterable[dict]:
     """One record per grid resolution: the seconds of one discovery rollout (``PhysicsModel.rollout``, no
     gradient) of the hidden-effect table's ``toss`` landing, the truth's particles on the truth's grid, and the

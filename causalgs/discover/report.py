@@ -395,4 +395,3 @@ def trajectories(traj: dict, obs: Observation) -> dict[str, np.ndarray]:
     where every rollout starts, put before them."""
     full = {k: np.concatenate([obs.x[:1], np.asarray(traj[k], dtype=np.float64)]) for k in ("before", "after")}
     return {"times": obs.times, "x": obs.x, "body": obs.body, "observed": np.int64(obs.observed), **full}
-
