@@ -26,6 +26,9 @@ import numpy as np
 from causalgs.discover.observation import Observation
 from causalgs.io import write_bytes, write_json, write_npz, write_text
 
+# a signature explaining less of the residual acceleration than this is reported as not showing the effect
+SIGNATURE_WEAK = 0.25
+
 
 def _plt():
     import matplotlib
@@ -164,11 +167,15 @@ def markdown(report: dict) -> str:
     if report["discovered"]:
         L.append("## Found")
         for d in report["discovered"]:
-            L += [f"- **{d['law']}**", f"  - evidence: residual signature `{d['evidence']['signature']}` "
-                  f"({_pct(d['evidence'].get('signature_share'))} of the residual acceleration); held-out RMS "
-                  f"−{100 * (1 - math.sqrt(max(0.0, 1 - d['evidence']['future_drop']))):.0f}%; "
-                  f"ΔBIC {d['evidence']['delta_bic']:+.1f}; "
-                  + ", ".join(f"{p} at {z:.1f} SE" for p, z in d["evidence"]["z"].items())]  # fmt: skip
+            ev = d["evidence"]
+            share = ev.get("signature_share")
+            # the signature is a hint for the screen; the refit's held-out drop and BIC are what decided
+            hint = (f"its signature `{ev['signature']}` explains {_pct(share)} of the residual acceleration"
+                    + (" (the smoothed accelerations do not show it; the refit does)"
+                       if share is not None and share < SIGNATURE_WEAK else ""))  # fmt: skip
+            L += [f"- **{d['law']}**", "  - evidence: held-out RMS "
+                  f"−{100 * (1 - math.sqrt(max(0.0, 1 - ev['future_drop']))):.0f}%; ΔBIC {ev['delta_bic']:+.1f}; "
+                  + "".join(f"{p} at {z:.1f} SE; " for p, z in ev["z"].items()) + hint]  # fmt: skip
             src = d.get("interval_sources") or {}
             if any(v for v in (src.get("se_rest_shape") or {}).values()):
                 ses = ", ".join(f"{p.split('.', 1)[1]} {src['se_noise'][p]:.3g} and {src['se_rest_shape'][p]:.3g}"
