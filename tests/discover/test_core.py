@@ -769,7 +769,7 @@ def test_a_second_round_screen_starts_from_the_accepted_model():
     from causalgs.discover.calibrate import positions
     from causalgs.discover.candidates import BY_KEY
     from causalgs.discover.model import PhysicsModel
-    from causalgs.discover.screen import screen
+    from causalgs.discover.screen import screen, transfer
 
     _ti.init("cpu", "float32")
     x0 = _cube(n=4, centre=(0.0, 0.0, 0.12))
@@ -786,9 +786,7 @@ def test_a_second_round_screen_starts_from_the_accepted_model():
         obs.x[1:] = truth.rollout(th).numpy()
     # The repaired model of round 1: damping accepted at its fitted (here: true) value; drag still missing.
     base = PhysicsModel(obs, "gravity;ground:mu=0.3;walls;damping:eta=0.0", learn=["damping.eta"], res=16)
-    theta = base.initial(E=3e4)
-    theta[: len(base.base_indices())] = th[: len(base.base_indices())]
-    theta[base.index("damping.eta")] = base.knobs[base.index("damping.eta")].internal(40.0)
+    theta = transfer(truth, th, base, extra={"damping.eta": 40.0})
     frames = list(range(1, obs.observed))
     pool = [BY_KEY[k] for k in ("force", "linear_drag", "quadratic_drag")]
     out = screen(base, theta, pool, frames)
