@@ -57,10 +57,15 @@ class PhysicsConfig:
     # per cell (MPM contact and impacts change with the cell size).
     box: str = "moving"
     segment: int = 16  # substeps per checkpoint segment
-    budget: int = 1500  # dynamic Gaussians that are particles themselves (the rest follow their nearest particle)
+    # How the bodies become particles (causalgs.model.particles): "surface" fills the solid the Gaussians enclose,
+    # a boundary voxel with only its part inside the surface; "gaussians" makes the Gaussians particles themselves
+    # (``budget`` of them; the rest follow their nearest particle) plus whole-voxel fill, which makes a body about a
+    # quarter of a cell thicker on every side.
+    fill: str = "surface"
+    budget: int = 1500
     capacity: int = 8192  # particle rows of the simulator's store (fixed, so kernels compile once)
-    # Most particles simulated (Gaussian particles and interior fill at 8 per cell): a large body on a fine grid gets
-    # coarser cells (a larger box) rather than a thinner fill, so one iteration's cost stays bounded.
+    # Most particles simulated (8 per cell, plus the Gaussian particles with fill "gaussians"): a large body on a
+    # fine grid gets coarser cells (a larger box) rather than a thinner fill, so one iteration's cost stays bounded.
     max_particles: int = 4096
     effects: str = "gravity;ground;walls"  # the model's physics (a spec of causalgs.sim.effects)
     # Effect parameters trained (names as in Effects.param_names). The ground's offset is learned from its "auto"
@@ -108,6 +113,8 @@ class PhysicsConfig:
     def __post_init__(self):
         if self.box not in ("moving", "scene"):
             raise CausalGSError(f"physics.box = {self.box!r} must be 'moving' or 'scene'")
+        if self.fill not in ("surface", "gaussians"):
+            raise CausalGSError(f"physics.fill = {self.fill!r} must be 'surface' or 'gaussians'")
         if not all(a > 0 for a in self.calibrate):
             raise CausalGSError(f"physics.calibrate = {list(self.calibrate)}: every factor must be positive")
         if self.assimilate_scored < 1:

@@ -1,17 +1,23 @@
 """From dynamic Gaussians to MPM particles, and back from simulated particles to Gaussians.
 
 3DGS puts its Gaussians on surfaces, so the dynamic Gaussians alone would simulate as hollow shells: wrong mass,
-wrong inertia, contact that folds in. The particle set is therefore:
+wrong inertia, contact that folds in. The particles fill the solid the surface encloses instead: the Gaussians'
+centres are voxelised at spacing dx/2 (the usual 8 particles per cell), the occupancy is closed until each body's
+surface seals and its enclosed holes are filled (scipy.ndimage; see :func:`seal_and_fill`), and then
 
-- the dynamic Gaussians themselves (each one a particle; a random subset of ``budget`` when there are more), plus
-- interior fill: the dynamic Gaussians' centres are voxelised at spacing dx/2 (the usual 8 particles per cell), the
-  occupancy closed until each body's surface seals and its enclosed holes filled (scipy.ndimage; see
-  :func:`seal_and_fill`), and every filled voxel that holds no Gaussian particle gets one lattice particle at its
-  centre.
+- ``fill = "surface"`` (the default): every voxel inside gets one particle at its centre with the voxel's volume
+  (dx/2)³; a voxel on the boundary gets only its part inside the surface the Gaussians sample (see
+  :func:`inside_fraction`), with that part's volume, its particle at that part's centroid. A voxel that holds a
+  surface Gaussian reaches on average half a voxel past the surface, so a fill of whole voxels makes a body about a
+  quarter of a cell thicker on every side: on a 0.20 × 0.16 × 0.12 m box at 1.19 cm voxels, +5% to +45% volume and
+  its lowest particle up to 12 mm low, which a contact fit then trades against the ground's height and friction.
+- ``fill = "gaussians"`` (the construction before it): the dynamic Gaussians are particles themselves (a random
+  subset of ``budget`` when there are more) and every filled voxel that holds none gets one at its centre; a voxel's
+  volume is shared equally by its particles.
 
-Each filled voxel's volume (dx/2)³ is shared equally by the particles in it, so total mass is the filled volume times
-density however the Gaussians are spread. Every dynamic Gaussian follows its nearest particle p to first order:
-x_g(t) = x_p(t) + F_p(t)(x_g(0) − x_p(0)) and Σ_g(t) = F_p Σ_g Fᵀ_p (a Gaussian that is a particle has zero offset).
+Total mass is the filled volume times density however the Gaussians are spread. Every dynamic Gaussian follows its
+nearest particle p to first order: x_g(t) = x_p(t) + F_p(t)(x_g(0) − x_p(0)) and Σ_g(t) = F_p Σ_g Fᵀ_p (a Gaussian
+that is a particle has zero offset).
 """
 
 from __future__ import annotations
@@ -24,6 +30,8 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from causalgs.errors import CausalGSError
+
+FILLS = ("surface", "gaussians")
 
 
 @dataclass
@@ -60,20 +68,23 @@ class Particles:
 
 def build_particles(
     means: np.ndarray, dynamic: np.ndarray, lo, dx: float, budget: int, capacity: int, seed: int = 0,
-    solid: np.ndarray | None = None, coarse_fill: bool = True,
+    solid: np.ndarray | None = None, coarse_fill: bool = True, fill: str = "surface",
 ) -> Particles:
     """Particles for the Gaussians ``means[solid]`` (default: ``dynamic``) on a grid of cell ``dx`` whose box starts
     at ``lo``: 8 per cell, or 1 per cell when 8 would pass ``capacity`` (a large dynamic region on a fixed-capacity
     store). Every Gaussian of ``dynamic`` is carried by its nearest particle. With ``coarse_fill`` false, more than
-    ``capacity`` particles at 8 per cell raise :class:`TooManyParticles` (with the count) instead."""
+    ``capacity`` particles at 8 per cell raise :class:`TooManyParticles` (with the count) instead. ``fill``:
+    ``"surface"`` or ``"gaussians"`` (the module's docstring); ``budget`` counts Gaussian particles in the latter."""
+    if fill not in FILLS:
+        raise CausalGSError(f"physics.fill = {fill!r}: expected one of {', '.join(FILLS)}")
     solid = dynamic if solid is None else (np.asarray(solid, bool) & np.asarray(dynamic, bool))
     try:
-        return _build(means, dynamic, solid, lo, dx / 2.0, budget, capacity, seed)
+        return _build(means, dynamic, solid, lo, dx / 2.0, budget, capacity, seed, fill)
     except _TooMany as e:
         if not coarse_fill:
             raise TooManyParticles(e.args[0]) from None
     try:
-        return _build(means, dynamic, solid, lo, dx, budget, capacity, seed)
+        return _build(means, dynamic, solid, lo, dx, budget, capacity, seed, fill)
     except _TooMany as e:
         raise CausalGSError(
             f"the dynamic region needs {e.args[0]} particles even at one per cell, more than the simulator's "
@@ -126,14 +137,50 @@ def seal_and_fill(occ: np.ndarray, first: int) -> np.ndarray:
     return out
 
 
+SUB = 4  # sub-samples per voxel edge where the surface cuts a voxel (64 per voxel: its inside share to 1/64)
+VOTERS = 8  # nearest surface Gaussians whose tangent planes decide whether a point is inside
+
+
+def inside_fraction(occ: np.ndarray, origin: np.ndarray, h: float, pts: np.ndarray,
+                    cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The share of each voxel ``cells`` [n, 3] (indices into ``occ``, whose voxel (0, 0, 0) has its corner at
+    ``origin``, edge ``h``) inside the surface sampled by the Gaussian centres ``pts`` [m, 3], and that part's
+    centroid: ([n], [n, 3]).
+
+    A Gaussian's outward normal is the direction in which the filled occupancy ``occ`` falls fastest (down the
+    gradient of its blur over one voxel): on a face that is the face's normal however the Gaussians on it are
+    arranged (their own spread's least axis is not: a face seen from no camera holds a few Gaussians in rows). A
+    point is inside where the tangent planes of its ``VOTERS`` nearest Gaussians, weighted by distance at the scale
+    of half a voxel, put it on average behind the surface (Hoppe et al.'s signed distance to the nearest tangent
+    plane, smoothed over a few so that one stray Gaussian does not cut a hole); a voxel's share is that of its
+    ``SUB``³ sub-samples inside."""
+    pts = np.asarray(pts, dtype=np.float64)
+    blur = ndimage.gaussian_filter(occ.astype(np.float64), 1.0)
+    grad = np.stack(np.gradient(blur), -1)
+    vox = np.clip(np.floor((pts - origin) / h).astype(np.int64), 0, np.array(occ.shape) - 1)
+    normal = -grad[tuple(vox.T)]
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    u = (np.arange(SUB) + 0.5) / SUB - 0.5
+    sub = np.stack(np.meshgrid(u, u, u, indexing="ij"), -1).reshape(-1, 3) * h
+    x = (origin + (cells + 0.5) * h)[:, None, :] + sub[None]  # [n, SUB³, 3]
+    q = x.reshape(-1, 3)
+    v = min(VOTERS, len(pts))
+    dist, near = cKDTree(pts).query(q, k=v)
+    dist, near = dist.reshape(len(q), v), near.reshape(len(q), v)
+    w = np.exp(-0.5 * ((dist - dist[:, :1]) / (0.5 * h)) ** 2)
+    side = ((q[:, None, :] - pts[near]) * normal[near]).sum(-1)
+    inside = ((w * side).sum(1) < 0).reshape(len(cells), -1)
+    share = inside.mean(1)
+    centroid = (x * inside[..., None]).sum(1) / np.maximum(inside.sum(1), 1)[:, None]
+    return share, centroid
+
+
 def _build(means: np.ndarray, dynamic: np.ndarray, solid: np.ndarray, lo, h: float, budget: int, capacity: int,
-           seed: int) -> Particles:  # fmt: skip
+           seed: int, fill: str) -> Particles:  # fmt: skip
     dyn = np.flatnonzero(dynamic)
     src = np.flatnonzero(solid)
     if len(src) == 0:
         raise CausalGSError("no dynamic Gaussians to simulate: every Gaussian was classed static")
-    rng = np.random.default_rng(seed)
-    chosen = src if len(src) <= budget else np.sort(rng.choice(src, budget, replace=False))
     lo = np.asarray(lo, dtype=np.float64)
     pts = means[src].astype(np.float64)
     ijk = np.floor((pts - lo) / h).astype(np.int64)
@@ -147,9 +194,47 @@ def _build(means: np.ndarray, dynamic: np.ndarray, solid: np.ndarray, lo, h: flo
     first = int(np.clip(np.ceil(2.0 * spacing / h), 1, 6))
     occ = np.pad(occ, first)
     base = base - first
-    shape = np.array(occ.shape)
     occ = seal_and_fill(occ, first)
-    # Every Gaussian particle's voxel.
+    if fill == "gaussians":
+        x0, vol, gaussian = _gaussian_particles(means, src, occ, base, lo, h, budget, capacity, seed)
+    else:
+        # The voxels the surface may cut: two layers in from the occupancy's boundary (surface Gaussians, and the
+        # voxels just behind them) and one out (a face on a voxel's edge).
+        cube = np.ones((3, 3, 3), bool)
+        core = ndimage.binary_erosion(occ, structure=cube, iterations=2)
+        band = ndimage.binary_dilation(occ, structure=cube) & ~core
+        on_band = band[tuple((ijk - base).T)]
+        if not on_band.any():
+            on_band[:] = True
+        if np.count_nonzero(occ) > capacity:  # the particles are about one per filled voxel
+            raise _TooMany(np.count_nonzero(occ))
+        cells = np.argwhere(band)
+        share, centroid = inside_fraction(occ, lo + base * h, h, pts[on_band], cells)
+        core = np.argwhere(core)
+        x0 = np.concatenate([lo + (core + base + 0.5) * h, centroid[share > 0]])
+        vol = np.concatenate([np.full(len(core), h**3), share[share > 0] * h**3])
+        if len(x0) > capacity:
+            raise _TooMany(len(x0))
+        gaussian = -np.ones(len(x0), dtype=np.int64)
+    tree = cKDTree(x0)
+    _, carrier = tree.query(means[dyn].astype(np.float64))
+    offset = means[dyn].astype(np.float64) - x0[carrier]
+    return Particles(
+        x0=torch.from_numpy(x0),
+        vol=torch.from_numpy(vol),
+        gaussian=torch.from_numpy(gaussian),
+        dynamic=torch.from_numpy(dyn),
+        carrier=torch.from_numpy(carrier.astype(np.int64)),
+        offset=torch.from_numpy(offset),
+    )
+
+
+def _gaussian_particles(means, src, occ, base, lo, h, budget, capacity, seed):
+    """``fill = "gaussians"``: the solid Gaussians (``budget`` of them at most) are particles, and every filled voxel
+    that holds none gets one at its centre; each voxel's volume is shared by its particles."""
+    rng = np.random.default_rng(seed)
+    chosen = src if len(src) <= budget else np.sort(rng.choice(src, budget, replace=False))
+    shape = np.array(occ.shape)
     g_ijk = np.floor((means[chosen].astype(np.float64) - lo) / h).astype(np.int64) - base
     occ[tuple(g_ijk.T)] = True
     holder = np.zeros(shape, dtype=bool)
@@ -159,20 +244,8 @@ def _build(means: np.ndarray, dynamic: np.ndarray, solid: np.ndarray, lo, h: flo
     x0 = np.concatenate([means[chosen].astype(np.float64), fill_x])
     if len(x0) > capacity:
         raise _TooMany(len(x0))
-    # Share each voxel's volume among its particles.
     all_ijk = np.concatenate([g_ijk, fill_ijk])
     flat = np.ravel_multi_index(tuple(all_ijk.T), shape)
     _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
     vol = h**3 / counts[inverse]
-    tree = cKDTree(x0)
-    _, carrier = tree.query(means[dyn].astype(np.float64))
-    offset = means[dyn].astype(np.float64) - x0[carrier]
-    gaussian = np.concatenate([chosen, -np.ones(len(fill_x), dtype=np.int64)])
-    return Particles(
-        x0=torch.from_numpy(x0),
-        vol=torch.from_numpy(vol),
-        gaussian=torch.from_numpy(gaussian),
-        dynamic=torch.from_numpy(dyn),
-        carrier=torch.from_numpy(carrier.astype(np.int64)),
-        offset=torch.from_numpy(offset),
-    )
+    return x0, vol, np.concatenate([chosen, -np.ones(len(fill_x), dtype=np.int64)])

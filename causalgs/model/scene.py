@@ -259,13 +259,14 @@ class CausalGS(torch.nn.Module):
                 raise CausalGSError("no solid dynamic Gaussian lies inside the simulation box")
             try:
                 particles = build_particles(means.numpy(), dyn.numpy(), box_lo.numpy(), dx, pc.budget, limit, seed,
-                                            solid=inside.numpy(), coarse_fill=False)  # fmt: skip
+                                            solid=inside.numpy(), coarse_fill=False, fill=pc.fill)  # fmt: skip
                 break
             except TooManyParticles as e:
                 dx *= 1.03 * (e.count / limit) ** (1.0 / 3.0)
         else:
+            fewer = f" or lower physics.budget (Gaussian particles, {pc.budget})" if pc.fill == "gaussians" else ""
             raise CausalGSError(f"no grid spacing keeps the particles within physics.max_particles = {limit}: raise "
-                                f"it or lower physics.budget (Gaussian particles, {pc.budget})")
+                                f"it{fewer}")
         self.box.copy_(torch.stack([box_lo, box_lo + pc.res * dx]))
         self.effect_params = torch.nn.Parameter(torch.as_tensor(flat, dtype=torch.float64))
         self.particles = particles

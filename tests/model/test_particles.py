@@ -18,6 +18,26 @@ def _sphere_shell(n: int, r: float, centre, seed: int = 0) -> np.ndarray:
     return np.asarray(centre) + r * d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
+def _box_surface(rng, n: int, size, centre, noise: float = 0.0) -> np.ndarray:
+    """``n`` points on the faces of an axis-aligned box (uniform by area), each moved by N(0, noise²) per axis."""
+    size = np.asarray(size, dtype=np.float64)
+    areas = np.array([size[1] * size[2], size[0] * size[2], size[0] * size[1]])
+    axis = rng.choice(3, size=n, p=areas / areas.sum())
+    p = (rng.random((n, 3)) - 0.5) * size
+    p[np.arange(n), axis] = rng.choice([-0.5, 0.5], size=n) * size[axis]
+    return p + np.asarray(centre) + rng.normal(0.0, noise, p.shape)
+
+
+def _mass_stats(x: np.ndarray, vol: np.ndarray):
+    """Volume, centroid, per-axis standard deviation and the mean height of the lowest 5% of the volume."""
+    w = vol / vol.sum()
+    mu = (w[:, None] * x).sum(0)
+    sd = np.sqrt((w[:, None] * (x - mu) ** 2).sum(0))
+    order = np.argsort(x[:, 2])
+    low = np.cumsum(w[order]) <= 0.05
+    return vol.sum(), mu, sd, float((x[order, 2][low] * w[order][low]).sum() / w[order][low].sum())
+
+
 def test_a_shell_of_gaussians_becomes_a_solid_ball_of_the_right_volume():
     dx = 0.05
     r = 0.2
@@ -25,23 +45,61 @@ def test_a_shell_of_gaussians_becomes_a_solid_ball_of_the_right_volume():
     static = np.random.default_rng(1).uniform(0, 1, (300, 3)) * [1, 1, 0.02]  # a floor, not simulated
     means = np.concatenate([shell, static])
     dynamic = np.arange(len(means)) < len(shell)
-    p = build_particles(means, dynamic, lo=(0, 0, 0), dx=dx, budget=1000, capacity=100000)
-    vol = float(p.vol.sum())
     true = 4 / 3 * math.pi * r**3
-    # The voxelised shell covers the ball plus at most a voxel layer outside it.
-    assert true * 0.95 < vol < true * 1.35, (vol, true)
-    # Interior particles exist (the ball is solid, not a shell) and fill particles are not Gaussians.
+    p = build_particles(means, dynamic, lo=(0, 0, 0), dx=dx, budget=1000, capacity=100000)
+    # The boundary voxels keep only their part inside the sphere.
+    assert abs(float(p.vol.sum()) / true - 1) < 0.04, (float(p.vol.sum()), true)
+    assert float(p.vol.max()) == pytest.approx((dx / 2) ** 3) and float(p.vol.min()) > 0
+    # Interior particles exist (the ball is solid, not a shell); no particle is a Gaussian, every Gaussian is carried.
     centre_dist = (p.x0 - torch.tensor([0.5, 0.5, 0.5], dtype=torch.float64)).norm(dim=1)
     assert int((centre_dist < 0.5 * r).sum()) > 50
-    assert int((p.gaussian >= 0).sum()) == 1000 and bool((p.gaussian[p.gaussian >= 0] < len(shell)).all())
+    assert float(centre_dist.max()) < r + 0.25 * dx  # each boundary particle at its part's centroid, inside
+    assert bool((p.gaussian == -1).all())
     assert len(p.carrier) == len(shell) and bool((p.dynamic == torch.arange(len(shell))).all())
-    # A Gaussian that is a particle rides on itself with zero offset.
+    assert float(p.offset.norm(dim=1).max()) < dx  # the nearest particle is close
+
+    # fill "gaussians": the Gaussians are particles (``budget`` of them, riding on themselves with zero offset) and
+    # whole voxels fill the rest, so the body comes out larger by up to a voxel layer.
+    p = build_particles(means, dynamic, lo=(0, 0, 0), dx=dx, budget=1000, capacity=100000, fill="gaussians")
+    assert true * 1.1 < float(p.vol.sum()) < true * 1.35, (float(p.vol.sum()), true)
+    assert int((p.gaussian >= 0).sum()) == 1000 and bool((p.gaussian[p.gaussian >= 0] < len(shell)).all())
     own = p.gaussian[p.gaussian >= 0]
     rows = torch.nonzero(p.gaussian >= 0).flatten()
     assert bool((p.carrier[own] == rows).all())
     assert float(p.offset[own].abs().max()) == 0.0
-    # Every offset is within a voxel diagonal or so (the nearest particle is close).
-    assert float(p.offset.norm(dim=1).max()) < dx
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.003])
+def test_a_box_keeps_its_extent_wherever_the_voxels_cut_its_faces(noise):
+    """Gaussians on a 0.20 × 0.16 × 0.12 m box's faces, on voxels of 1.19 cm placed at random against it: the
+    particles' volume, spread along every axis, centroid and lowest layer are the solid box's; a fill of whole
+    voxels is a quarter of a cell thicker on every side (+5% to +45% volume here)."""
+    rng = np.random.default_rng(0)
+    size, centre, dx = np.array([0.2, 0.16, 0.12]), np.array([-0.33, 0.02, 0.218]), 0.0238
+    true_sd = size / math.sqrt(12)
+    true_low = centre[2] - size[2] / 2 + 0.025 * size[2]
+    for n in (1500, 6000):
+        for _ in range(2):
+            lo = np.array([-0.5, -0.5, -0.1]) + rng.random(3) * dx / 2
+            means = _box_surface(rng, n, size, centre, noise)
+            p = build_particles(means, np.ones(n, bool), lo, dx, budget=n, capacity=100000)
+            vol, mu, sd, low = _mass_stats(p.x0.numpy(), p.vol.numpy())
+            assert abs(vol / size.prod() - 1) < 0.05, vol / size.prod()
+            assert np.abs(sd / true_sd - 1).max() < 0.04, sd / true_sd
+            assert np.abs(mu - centre).max() < 0.0015, mu - centre
+            assert abs(low - true_low) < 0.003, low - true_low
+            whole = build_particles(means, np.ones(n, bool), lo, dx, budget=n, capacity=100000, fill="gaussians")
+            assert float(whole.vol.sum()) / size.prod() - 1 > abs(vol / size.prod() - 1)
+
+
+def test_a_plate_thinner_than_a_voxel_keeps_its_thickness():
+    rng = np.random.default_rng(2)
+    size, centre, dx = np.array([0.2, 0.16, 0.008]), np.array([0.0, 0.0, 0.2]), 0.0238
+    means = _box_surface(rng, 4000, size, centre)
+    p = build_particles(means, np.ones(len(means), bool), (-0.5, -0.5, -0.1), dx, budget=4000, capacity=100000)
+    vol, mu, sd, _ = _mass_stats(p.x0.numpy(), p.vol.numpy())
+    assert 0.8 < vol / size.prod() < 1.3, vol / size.prod()
+    assert abs(mu[2] - centre[2]) < 0.002 and sd[2] < 0.006, (mu, sd)
 
 
 def test_carry_follows_translation_and_deformation():
@@ -63,6 +121,8 @@ def test_too_many_particles_and_nothing_dynamic_are_clear_errors():
         build_particles(means, np.ones(20000, bool), lo=(-1, -1, -1), dx=0.02, budget=200, capacity=5000)
     with pytest.raises(CausalGSError, match="no dynamic"):
         build_particles(means, np.zeros(20000, bool), lo=(-1, -1, -1), dx=0.05, budget=10, capacity=500)
+    with pytest.raises(CausalGSError, match="physics.fill"):
+        build_particles(means, np.ones(20000, bool), lo=(-1, -1, -1), dx=0.05, budget=10, capacity=500, fill="dense")
 
 
 def test_a_gappy_surface_is_sealed_before_it_is_filled():
