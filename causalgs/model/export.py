@@ -5,8 +5,8 @@
 - ``means`` [N, 3], ``dynamic`` [N] bool, ``code`` [N, C] physics code z, ``mixture`` [N, K] h,
   ``velocity`` [N, 3] initial velocity v(p, 0), ``E`` [N] Pa, ``nu`` [N], ``density`` [N] kg/m³;
 - with a physical stage: ``particles_x0`` [P, 3], ``particles_vol`` [P], ``particles_v0`` [P, 3], ``particles_E``,
-  ``particles_nu``, ``particles_density`` [P], ``particles_gaussian`` [P] (Gaussian index or −1 for interior fill),
-  ``effect_names`` and ``effect_params`` (the learned effect parameters).
+  ``particles_nu``, ``particles_density`` [P], ``particles_gaussian`` [P] (the Gaussian a particle is, with
+  ``physics.fill = "gaussians"``; else −1), ``effect_names`` and ``effect_params`` (the learned effect parameters).
 """
 
 from __future__ import annotations
