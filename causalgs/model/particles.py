@@ -9,8 +9,8 @@ surface seals and its enclosed holes are filled (scipy.ndimage; see :func:`seal_
   (dx/2)³; a voxel on the boundary gets only its part inside the surface the Gaussians sample (see
   :func:`inside_fraction`), with that part's volume, its particle at that part's centroid. A voxel that holds a
   surface Gaussian reaches on average half a voxel past the surface, so a fill of whole voxels makes a body about a
-  quarter of a cell thicker on every side: on a 0.20 × 0.16 × 0.12 m box at 1.19 cm voxels, +5% to +45% volume and
-  its lowest particle up to 12 mm low, which a contact fit then trades against the ground's height and friction.
+  quarter of a cell thicker on every side: on a 0.20 × 0.16 × 0.12 m box at 1.19 cm voxels, +6% to +56% volume and
+  its lowest layer 3–12 mm low, which a contact fit then trades against the ground's height and friction.
   The surface is where the Gaussians' centres are: a 3DGS fit puts them a few millimetres inside a face (a median
   6 mm on the fitted toss scenes), so there a body comes out about 15% light but with the spread and the lowest
   layer of the true one (within 2–7% and 1–5 mm, where whole voxels give +8–10% and 3–8 mm low).

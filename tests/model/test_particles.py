@@ -73,7 +73,7 @@ def test_a_shell_of_gaussians_becomes_a_solid_ball_of_the_right_volume():
 def test_a_box_keeps_its_extent_wherever_the_voxels_cut_its_faces(noise):
     """Gaussians on a 0.20 × 0.16 × 0.12 m box's faces, on voxels of 1.19 cm placed at random against it: the
     particles' volume, spread along every axis, centroid and lowest layer are the solid box's; a fill of whole
-    voxels is a quarter of a cell thicker on every side (+5% to +45% volume here)."""
+    voxels is a quarter of a cell thicker on every side (+6% to +56% volume here)."""
     rng = np.random.default_rng(0)
     size, centre, dx = np.array([0.2, 0.16, 0.12]), np.array([-0.33, 0.02, 0.218]), 0.0238
     true_sd = size / math.sqrt(12)
