@@ -123,6 +123,12 @@ def test_too_many_particles_and_nothing_dynamic_are_clear_errors():
         build_particles(means, np.zeros(20000, bool), lo=(-1, -1, -1), dx=0.05, budget=10, capacity=500)
     with pytest.raises(CausalGSError, match="physics.fill"):
         build_particles(means, np.ones(20000, bool), lo=(-1, -1, -1), dx=0.05, budget=10, capacity=500, fill="dense")
+    from causalgs.model.config import FitConfig, from_dict, to_dict
+
+    d = to_dict(FitConfig.preset_config("quick"))
+    d["physics"]["fill"] = "dense"
+    with pytest.raises(CausalGSError, match="physics.fill"):
+        from_dict(FitConfig, d)
 
 
 def test_a_gappy_surface_is_sealed_before_it_is_filled():
