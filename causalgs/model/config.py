@@ -19,6 +19,7 @@ from causalgs.errors import CausalGSError
 from causalgs.io import write_text
 from causalgs.model.canonical import CanonicalConfig
 from causalgs.model.fields import FieldsConfig
+from causalgs.model.particles import FILLS
 from causalgs.settings import check_keys
 
 
@@ -113,8 +114,8 @@ class PhysicsConfig:
     def __post_init__(self):
         if self.box not in ("moving", "scene"):
             raise CausalGSError(f"physics.box = {self.box!r} must be 'moving' or 'scene'")
-        if self.fill not in ("surface", "gaussians"):
-            raise CausalGSError(f"physics.fill = {self.fill!r} must be 'surface' or 'gaussians'")
+        if self.fill not in FILLS:
+            raise CausalGSError(f"physics.fill = {self.fill!r}: expected one of {', '.join(FILLS)}")
         if not all(a > 0 for a in self.calibrate):
             raise CausalGSError(f"physics.calibrate = {list(self.calibrate)}: every factor must be positive")
         if self.assimilate_scored < 1:
