@@ -68,10 +68,23 @@ class Body:
         h = np.asarray(self.size if self.shape == "box" else (self.size[0],) * 3, dtype=np.float64)
         return c - h, c + h
 
-    def surface(self, spacing: float) -> tuple[np.ndarray, np.ndarray]:
-        """The rest surface mesh: the shape's boundary, which the particles' cells fill."""
+    def lattice(self, spacing: float) -> np.ndarray:
+        """The body's particles: the centres of the cells of a grid of ``spacing`` (from the low corner of its
+        bounds) that lie inside the shape."""
         lo, hi = self.bounds()
+        axes = [np.arange(lo[d] + spacing / 2, hi[d], spacing) for d in range(3)]
+        X = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        return X[self.inside(X)]
+
+    def surface(self, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+        """The rest surface mesh: the boundary of what the particles' cells fill. For a box that is the union of
+        the cells, whose sides are whole numbers of spacings (within half a spacing of ``size``): what is rendered
+        is what is simulated, so a model fitted to the images can recover the simulated body's extent."""
         if self.shape == "box":
+            X = self.lattice(spacing)
+            if len(X) == 0:
+                raise CausalGSError(f"body '{self.name}' is smaller than the particle spacing {spacing:g} m")
+            lo, hi = X.min(0) - spacing / 2, X.max(0) + spacing / 2
             cells = max(2, round(float((hi - lo).max()) / spacing / 2))
             return box_mesh(lo, hi, cells)
         return sphere_mesh(self.center, self.size[0], subdivisions=3)
@@ -101,10 +114,7 @@ def _sample(bodies: list[Body], spacing: float):
     """Lattice particles of every body (cell centres of a grid of ``spacing``), with body indices."""
     xs, owner = [], []
     for i, b in enumerate(bodies):
-        lo, hi = b.bounds()
-        axes = [np.arange(lo[d] + spacing / 2, hi[d], spacing) for d in range(3)]
-        X = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-        X = X[b.inside(X)]
+        X = b.lattice(spacing)
         if len(X) == 0:
             raise CausalGSError(f"body '{b.name}' is smaller than the particle spacing {spacing:g} m")
         xs.append(X)

@@ -160,3 +160,22 @@ def test_reference_res_option_sets_the_true_grid(tmp_path):
     assert r.exit_code != 0 and "--reference-res" in r.output and "Traceback" not in r.output
     r = CliRunner().invoke(cli, [*args, "--force", "--reference-res", "4"])
     assert r.exit_code != 0 and "--reference-res" in r.output
+
+
+@pytest.mark.parametrize("size", [(0.1, 0.08, 0.06), (0.05, 0.05, 0.05), (0.07, 0.031, 0.044)])
+def test_a_box_is_rendered_as_the_union_of_its_particles_cells(size):
+    """The rendered box and the simulated one agree: every face of the mesh is a face of the lattice's cells, so
+    the mesh encloses exactly the particles' volume (a side that is not a whole number of spacings used to be
+    rendered at its nominal length, up to half a spacing off the simulated body)."""
+    spacing = 0.011627
+    body = physics.Body("b", "box", (0.01, -0.02, 0.2), size, E=1e4, nu=0.3, density=1e3, color=(1, 0, 0))
+    X = body.lattice(spacing)
+    V, T = body.surface(spacing)
+    assert np.allclose(V.min(0), X.min(0) - spacing / 2) and np.allclose(V.max(0), X.max(0) + spacing / 2)
+    a, b, c = (V[T[:, i]] for i in range(3))
+    volume = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6  # divergence theorem over the closed mesh
+    assert abs(abs(volume) - len(X) * spacing**3) < 1e-9
+    assert np.all(np.abs(V.max(0) - V.min(0) - 2 * np.asarray(size)) <= spacing / 2 + 1e-12)
+    # every particle's cell lies inside the mesh's box, and the lattice fills it with no gap
+    counts = np.round((V.max(0) - V.min(0)) / spacing).astype(int)
+    assert len(X) == counts.prod()
