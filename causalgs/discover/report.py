@@ -338,6 +338,12 @@ def markdown(report: dict) -> str:
                   f"{rb['future_before_cm2']:.3g} → {rb['future_after_cm2']:.3g} cm²): the candidates were judged "
                   "against it, as what they add must be more than a better minimum of the base."]  # fmt: skip
         L.append("")
+    st = report.get("settled")
+    if st:
+        L += [f"Round {st['round']} was not run: the repaired model fits the window at "
+              f"{st['train_rms_ratio_to_noise']:.2f}× the noise and misses the held-out frames by "
+              f"{st['future_rms_ratio_to_floor']:.2f}× what a correct model would, so nothing is left to explain "
+              "(a further effect could only fit the noise).", ""]  # fmt: skip
     if report["discovered"]:
         d0 = report["discovered"][0]
         L += ["## Base parameters before and after (the missing effect biases them)", "",

@@ -426,3 +426,19 @@ def test_a_dead_worker_leaves_its_runs_for_the_resumed_table():
     T.execute([(os._exit, 3)], 2, None, operator.call, (), lambda *a: pytest.fail("a failed row"), rows.append,
               logs.append)  # fmt: skip
     assert rows == [] and "a worker process died" in logs[-1] and "(seed 3)" in logs[-1], logs
+
+
+def test_no_further_round_once_the_repaired_model_agrees_within_the_noise(ti32_runtime, tmp_path):
+    """After the drag is found, the repaired model fits the window at the noise and the held-out frames within what
+    a correct model misses them by: a second round would only fit the noise, and is not run."""
+    import dataclasses
+
+    from causalgs.discover.run import run_discovery
+
+    cfg = dataclasses.replace(CFG, max_effects=2)
+    rep = run_discovery("throw.npz", tmp_path, spec="gravity;walls", learn=(), candidates=CANDIDATES, config=cfg,
+                        obs=_throw(C_TRUE))  # fmt: skip
+    assert [d["effect"] for d in rep["discovered"]] == ["linear_drag"]
+    assert len(rep["rounds"]) == 1 and rep["settled"]["round"] == 2
+    assert rep["settled"]["train_rms_ratio_to_noise"] <= 1 and rep["settled"]["future_rms_ratio_to_floor"] <= 1
+    assert "Round 2 was not run" in (tmp_path / "report.md").read_text()
