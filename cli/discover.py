@@ -186,7 +186,7 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
     --level video       each case is `causalgs synth toss --fps 120` with the effect, `causalgs fit` (the quick
                         preset; the model's physics lacks the effect) and `causalgs discover` on the run: forces
                         and drags in a flight of 48 frames, damping, friction, sticky ground and plasticity in a
-                        landing of 96; every stage resumes
+                        landing of 144; every stage resumes
 
     Each run goes to --out/CASE-sSEED; --out/table.md and table.json collect the rows and the goals reached. Rows
     already in table.json are kept and not run again, so an interrupted table resumes.

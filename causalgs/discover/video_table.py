@@ -10,8 +10,12 @@ Two windows:
 
 - **flight** (48 frames, 36 observed): the block is in the air for the whole observed window and lands just after
   it. Forces, drags and a pull towards a point show here; the first 27 frames are fitted, the last 9 held out.
-- **landing** (96 frames, 72 observed): the block lands a third of a second in and slides. Damping, friction,
-  sticky ground and plasticity show only at and after the contact, where tracking is hardest.
+- **landing** (144 frames, 108 observed; discovery fits 81 and holds out 27): the block lands a third of a second
+  in, bounces, lands again and slides. Damping, friction, sticky ground and plasticity show only at and after the
+  contact, where tracking is hardest. With 96 frames (72 observed, 54 fitted) friction acted at a single impact,
+  where μ trades against the material's bounce: on the friction case (μ = 0.3, seed 0) discovery named it at
+  μ = 0.350 [0.135, 0.603]; with the second impact and the slide in view, at 0.323 [0.222, 0.399], the held-out
+  error 104.4 → 2.7 mm. The longer window costs about 1.7× the fit (29 against 17 minutes) and 1.3× the discovery.
 
 Discovery simulates on the grid the truth was simulated on (its box, ``reference_res`` cells), as the trajectory
 table does, so that the table measures the tracking and the discovery rather than the simulator's convergence in
@@ -46,7 +50,7 @@ from causalgs.discover.table import BASE, _failed, _slug, score, summary
 from causalgs.errors import CausalGSError
 from causalgs.io import read_json, write_json, write_text
 
-FLIGHT, LANDING = 48, 96  # frames rendered (the last quarter is the dataset's future, never seen by the fit)
+FLIGHT, LANDING = 48, 144  # frames rendered (the last quarter is the dataset's future, never seen by the fit)
 
 
 @dataclass(frozen=True)
