@@ -522,12 +522,14 @@ def held_out_floor(state: State, floor: float) -> float:
     return track + ((state.spread or 0.0) ** 2 + (state.extent or 0.0) ** 2 + (state.blind or 0.0) ** 2) / UNIT**2
 
 
-def settled(state: State, floor: float) -> bool:
+def settled(state: State, floor: float) -> dict | None:
     """Whether a repaired model already agrees with the measurement as well as a correct model would: its window
     error at most the noise floor ``floor`` (m per coordinate) and its held-out error at most
     :func:`held_out_floor`. Then a further round has nothing to explain, and any candidate that passed it would be
-    fitting noise."""
-    return state.train <= (floor / UNIT) ** 2 and state.future <= held_out_floor(state, floor)
+    fitting noise. Returns both RMS ratios when it does, else None."""
+    ratios = {"train_rms_ratio_to_noise": math.sqrt(state.train / (floor / UNIT) ** 2),
+              "future_rms_ratio_to_floor": math.sqrt(state.future / held_out_floor(state, floor))}  # fmt: skip
+    return ratios if max(ratios.values()) <= 1 else None
 
 
 NO_SPREAD = 1e-9  # a bootstrap spread below this fraction of a parameter's size is none (rounding)
@@ -837,17 +839,17 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         pool = [c for c in pool if c.applies(current.model.effects, current.model.learn)]
         if not pool:
             break
-        if report["discovered"] and current.spread is None:
-            _uncertainty(current, [], cfg, floor=floor_coord)  # what a correct model would miss the held-out frames by
-        if report["discovered"] and settled(current, floor_coord):
-            # Nothing is left to explain: a further effect could only fit the noise (on the damping landing from
-            # video, seed 0, a uniform force of 0.07 m/s² passed a second round that way, after the damped model
-            # had fit the window at 0.65× the noise and the held-out frames at 0.75× what a correct model misses)
-            report["settled"] = {"round": round_ + 1, "train_rms_ratio_to_noise": math.sqrt(
-                current.train / (floor_coord / UNIT) ** 2), "future_rms_ratio_to_floor": math.sqrt(
-                current.future / held_out_floor(current, floor_coord))}  # fmt: skip
-            log(f"round {round_ + 1}: not run, the repaired model agrees with the measurement within its noise")
-            break
+        if report["discovered"]:
+            if current.spread is None:  # what a correct model would miss the held-out frames by
+                _uncertainty(current, [], cfg, floor=floor_coord)
+            agrees = settled(current, floor_coord)
+            if agrees:
+                # Nothing is left to explain: a further effect could only fit the noise (on the damping landing from
+                # video, seed 0, a uniform force of 0.07 m/s² passed a second round that way, after the damped
+                # model had fit the window at 0.65× the noise and the held-out frames at 0.75× a correct model's miss)
+                report["settled"] = {"round": round_ + 1, **agrees}
+                log(f"round {round_ + 1}: not run, the repaired model agrees with the measurement within its noise")
+                break
         log(f"round {round_ + 1}: screening {', '.join(c.key for c in pool)}")
         # the journal's name of this round: its number and the effects accepted before it (the model it starts from)
         accepted = [d["effect"] for d in report["discovered"]]

@@ -70,11 +70,14 @@ class Body:
 
     def lattice(self, spacing: float) -> np.ndarray:
         """The body's particles: the centres of the cells of a grid of ``spacing`` (from the low corner of its
-        bounds) that lie inside the shape."""
+        bounds) that lie inside the shape. Raises if there is none."""
         lo, hi = self.bounds()
         axes = [np.arange(lo[d] + spacing / 2, hi[d], spacing) for d in range(3)]
         X = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-        return X[self.inside(X)]
+        X = X[self.inside(X)]
+        if len(X) == 0:
+            raise CausalGSError(f"body '{self.name}' is smaller than the particle spacing {spacing:g} m")
+        return X
 
     def surface(self, spacing: float) -> tuple[np.ndarray, np.ndarray]:
         """The rest surface mesh: the boundary of what the particles' cells fill. For a box that is the union of
@@ -82,8 +85,6 @@ class Body:
         is what is simulated, so a model fitted to the images can recover the simulated body's extent."""
         if self.shape == "box":
             X = self.lattice(spacing)
-            if len(X) == 0:
-                raise CausalGSError(f"body '{self.name}' is smaller than the particle spacing {spacing:g} m")
             lo, hi = X.min(0) - spacing / 2, X.max(0) + spacing / 2
             cells = max(2, round(float((hi - lo).max()) / spacing / 2))
             return box_mesh(lo, hi, cells)
@@ -115,8 +116,6 @@ def _sample(bodies: list[Body], spacing: float):
     xs, owner = [], []
     for i, b in enumerate(bodies):
         X = b.lattice(spacing)
-        if len(X) == 0:
-            raise CausalGSError(f"body '{b.name}' is smaller than the particle spacing {spacing:g} m")
         xs.append(X)
         owner.append(np.full(len(X), i))
     return np.concatenate(xs), np.concatenate(owner), spacing**3
