@@ -179,3 +179,14 @@ def test_a_box_is_rendered_as_the_union_of_its_particles_cells(size):
     # every particle's cell lies inside the mesh's box, and the lattice fills it with no gap
     counts = np.round((V.max(0) - V.min(0)) / spacing).astype(int)
     assert len(X) == counts.prod()
+
+
+def test_a_body_smaller_than_the_particle_spacing_is_a_one_line_error():
+    from causalgs.errors import CausalGSError
+
+    grain = physics.Body("grain", "ball", (0.0, 0.0, 0.2), (0.001,), E=1e4, nu=0.3, density=1e3, color=(1, 0, 0))
+    with pytest.raises(CausalGSError, match="'grain' is smaller than the particle spacing"):
+        grain.lattice(0.01)
+    with pytest.raises(CausalGSError, match="smaller than the particle spacing"):
+        physics.Body("flake", "box", (0, 0, 0.2), (0.05, 0.05, 0.001), E=1e4, nu=0.3, density=1e3,
+                     color=(1, 0, 0)).surface(0.01)  # fmt: skip
