@@ -5,8 +5,9 @@
    Gaussians, on a time window that widens from ``window_start`` frames to every observed frame (slowly at first;
    every other image from the window's newest frames; the loss includes blurred copies of both images, so a small
    fast body that no longer overlaps its image is still pulled towards it). At the end the fit is kept as the model's
-   *tracked* copy of the fields, Gaussians that never move are frozen as static background, and the model as it
-   stands is kept as ``kinematic.pt``, the kinematic-only model that evaluation compares against;
+   *tracked* copy of the fields, Gaussians that never move are frozen as static background (so are patches of the
+   floor that the fit moved, :func:`~causalgs.model.scene.floor_patches`, when the physics has a ground), and the
+   model as it stands is kept as ``kinematic.pt``, the kinematic-only model that evaluation compares against;
 3. **physics**: the dynamic Gaussians become MPM particles; renders of the simulated state and the distance between
    simulated and tracked positions at frame times train f_mat (materials), the fields through the initial velocity,
    and the learned effect parameters, through the checkpointed Taichi backward. Even iterations roll out from t = 0
@@ -40,9 +41,9 @@ from causalgs.metrics import ssim
 from causalgs.model.canonical import train_canonical
 from causalgs.model.config import FitConfig
 from causalgs.model.gaussians import Gaussians
-from causalgs.model.scene import FORECAST_SOURCES, CausalGS, scene_bounds
+from causalgs.model.scene import FORECAST_SOURCES, CausalGS, floor_patches, scene_bounds
 from causalgs.model.timeline import Timeline
-from causalgs.sim.effects import REGISTRY
+from causalgs.sim.effects import REGISTRY, Effects
 
 STAGES = ("canonical", "kinematic", "physics", "assimilate", "done")
 LENGTHS = ("d",)  # effect parameters measured in metres (their steps are scaled by LENGTH_STEP)
@@ -295,9 +296,14 @@ class Trainer:
             traj, _ = m.kinematic(self.timeline.train_frames - 1, rotations=False)
             disp = (traj - traj[:1]).norm(dim=-1).max(0).values
             size = float((m.hi - m.lo).max())
-            m.dynamic.copy_(disp > self.config.kinematic.static_threshold * size)
+            reach = self.config.kinematic.static_threshold * size
+            dynamic = disp > reach
+            floor = torch.zeros_like(dynamic)
+            if "ground" in Effects.from_spec(self.config.physics.effects).names():
+                floor = floor_patches(traj[0], dynamic, size, reach)  # the floor under a body that stays on it
+            m.dynamic.copy_(dynamic & ~floor)
         self.run.log({"stage": "kinematic", "it": self.config.kinematic.iterations, "dynamic": int(m.dynamic.sum()),
-                      "static": int((~m.dynamic).sum())})  # fmt: skip
+                      "static": int((~m.dynamic).sum()), "floor": int(floor.sum())})  # fmt: skip
 
     def _physics(self, start: int, opt_state) -> None:
         t0 = time.monotonic() - self.stage_seconds.get("physics", 0.0)

@@ -704,3 +704,34 @@ def test_refinement_finds_a_displacement_the_velocity_field_missed(fitted, tmp_p
     calls = []
     other = cached_tracks(run, m, data, tl, RefineConfig(iterations=3, views=1), progress=lambda *a: calls.append(a))
     assert other.key != first.key and calls[-1] == (n, n)
+
+
+def _grid(lo, hi, step):
+    axes = [np.arange(a, b + 1e-9, step) if b > a else np.array([a]) for a, b in zip(lo, hi, strict=True)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def test_the_floor_under_a_body_is_static_and_a_body_on_it_is_not():
+    from causalgs.model.scene import floor_level, floor_patches
+
+    size, reach = 1.0, 0.01
+    floor = _grid((-0.5, -0.5, 0.0), (0.5, 0.5, 0.0), 0.02)  # static
+    patch = _grid((0.1, 0.1, -0.004), (0.2, 0.2, 0.004), 0.008)  # floor the fit moved: dynamic
+    flying = _grid((-0.3, -0.3, 0.2), (-0.1, -0.1, 0.3), 0.008)  # a body in the air
+    standing = _grid((0.3, -0.3, 0.0), (0.4, -0.2, 0.1), 0.008)  # a body on the floor, its bottom layer at z = 0
+    start = torch.from_numpy(np.concatenate([floor, patch, flying, standing]))
+    n = np.cumsum([0, len(floor), len(patch), len(flying), len(standing)])
+    dynamic = torch.ones(len(start), dtype=torch.bool)
+    dynamic[: n[1]] = False
+    found = floor_patches(start, dynamic, size, reach)
+    assert found[n[1] : n[2]].all()  # the patch is the floor's
+    assert not found[n[2] :].any()  # both bodies stay dynamic, the standing one's bottom layer too
+    assert not found[: n[1]].any()  # only dynamic Gaussians are reported
+    assert floor_level(start[: n[1], 2], 0.2, size) == pytest.approx(0.0)
+
+    # Without a floor (static Gaussians spread evenly over the heights: a wall) nothing is taken for one.
+    wall = torch.from_numpy(_grid((-0.5, 0.5, -0.2), (0.5, 0.5, 0.6), 0.02))
+    start = torch.cat([wall, torch.from_numpy(patch)])
+    dynamic = torch.arange(len(start)) >= len(wall)
+    assert floor_level(wall[:, 2], float(start[dynamic, 2].median()), size) is None
+    assert not floor_patches(start, dynamic, size, reach).any()
