@@ -190,14 +190,10 @@ STRAY_SHARE = 0.01  # groups of particles holding less than this share of them a
 def stray_particles(x: np.ndarray, cell: float, share: float = STRAY_SHARE) -> np.ndarray:
     """[P] bool: particles of the groups (particles within one simulation cell of each other, transitively) that hold
     fewer than ``share`` of all the particles (and fewer than 8): floaters, not bodies."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
+    from causalgs.model.scene import linked_groups
 
-    pairs = cKDTree(x).query_pairs(cell, output_type="ndarray")
     n = len(x)
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, label = connected_components(graph, directed=False)
+    label = linked_groups(x, cell)
     size = np.bincount(label)
     return size[label] < max(8, share * n) if n >= 8 else np.zeros(n, dtype=bool)
 

@@ -545,22 +545,27 @@ def floor_patches(start: torch.Tensor, dynamic: torch.Tensor, size: float, reach
     level = floor_level(z0[~dynamic], float(z0[dynamic].median()), size)
     if level is None:
         return found
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
     idx = torch.nonzero(dynamic).flatten()
     x = start[idx].double().numpy()
-    pairs = cKDTree(x).query_pairs(reach, output_type="ndarray")
-    n = len(x)
-    _, label = connected_components(coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)),
-                                    directed=False)  # fmt: skip
+    label = linked_groups(x, reach)
     z = x[:, 2]
     for g in np.unique(label):
         mine = label == g
         if np.quantile(z[mine], 0.95) <= level + reach:
             found[idx[torch.from_numpy(mine)]] = True
     return found
+
+
+def linked_groups(x: np.ndarray, reach: float) -> np.ndarray:
+    """[N] int: the group of each point, points within ``reach`` of each other being in one group, transitively."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(x).query_pairs(reach, output_type="ndarray")
+    n = len(x)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
 
 
 def scene_bounds(points: np.ndarray, margin: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
