@@ -64,6 +64,12 @@ def _starts(text: str) -> tuple[float, ...]:
               help="For a run: the measured motion. 'refined': the run's tracked motion corrected frame by frame to "
                    "that frame's images (one rigid correction per motion pattern; kept in RUN/tracks.npz, about ten "
                    "CPU-seconds a frame); 'kinematic': the run's velocity field as fitted, which smooths impacts.")
+@click.option("--lens", type=click.Choice(["auto", "rigid", "affine"]), default="auto", show_default=True,
+              help="For refined tracks of a run: what they move each motion pattern by, and so what the simulation "
+                   "is compared through. 'rigid': a rotation and a shift; 'affine': also a stretch (a body squashed "
+                   "for good, as by plastic flow); 'auto': both are refined (RUN/tracks.npz, "
+                   "RUN/tracks-affine.npz), and the stretching tracks are taken only where they match held-out "
+                   "cameras at least 1 dB better on a quarter of the frames.")  # fmt: skip
 @click.option("--weigh/--no-weigh", default=False, show_default=True,
               help="Through a run's rigid lens: weigh every residual by σ/√(σ² + e²), e the base fit's departure "
                    "from rigid motion at that frame and body (where rigid tracks cannot follow a deforming body, "
@@ -76,8 +82,8 @@ def _starts(text: str) -> tuple[float, ...]:
               help="Continue the discovery run in --out (stopped, or to redo its outputs) from the calibrations it "
                    "finished (progress.json); the options must be the same.")  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print report.json to stdout.")
-def discover(source, out, spec, learn, candidates, max_effects, res, starts, iterations, tracking, weigh, precision,
-             resume, as_json):  # fmt: skip
+def discover(source, out, spec, learn, candidates, max_effects, res, starts, iterations, tracking, lens, weigh,
+             precision, resume, as_json):  # fmt: skip
     """Find where simulation and measurement disagree, name the missing physical effect, add it, show the gap shrink.
 
     SOURCE is a fitted run folder (`causalgs fit`: the measurement is the tracked motion of its particles over the
@@ -133,7 +139,7 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
 
         report = run_discovery(source, out, spec=spec, learn=_names(learn, "--learn"), candidates=cands,
                                config=cfg, log=None if as_json else _console_log(), resume=resume,
-                               refine=tracking == "refined", progress=refining)  # fmt: skip
+                               refine=tracking == "refined", lens=lens, progress=refining)  # fmt: skip
     if as_json:
         from causalgs.discover.report import finite
 

@@ -41,10 +41,10 @@ def calibration_options(spec: str, learn, cfg, start: dict | None = None) -> dic
             "iterations": cfg.iterations, "warm": cfg.warm, "weigh": cfg.weigh}  # fmt: skip
 
 
-def fingerprint(options: dict, x: np.ndarray, mix: np.ndarray | None = None) -> str:
+def fingerprint(options: dict, x: np.ndarray, mix: np.ndarray | None = None, lens_kind: str = "rigid") -> str:
     """A digest of the run's options, its measurement (positions at full precision, and the lens the simulation is
-    compared through, ``Observation.mix``) and the causalgs version (a calibration of another version may mean other
-    things by the same θ)."""
+    compared through, ``Observation.mix`` and ``lens_kind``) and the causalgs version (a calibration of another
+    version may mean other things by the same θ)."""
     from causalgs import __version__
 
     h = hashlib.sha256(json.dumps({"options": options, "version": __version__}, sort_keys=True).encode())
@@ -52,6 +52,8 @@ def fingerprint(options: dict, x: np.ndarray, mix: np.ndarray | None = None) -> 
     if mix is not None:
         h.update(b"mix")
         h.update(np.ascontiguousarray(mix, dtype=np.float64).tobytes())
+        if lens_kind != "rigid":
+            h.update(lens_kind.encode())
     return h.hexdigest()[:16]
 
 

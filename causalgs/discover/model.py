@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from causalgs import _ti
-from causalgs.discover.observation import Observation, rigid_projection
+from causalgs.discover.observation import LENSES, Observation
 from causalgs.discover.residuals import twist_basis
 from causalgs.errors import CausalGSError
 from causalgs.sim import SimConfig, Simulator
@@ -305,7 +305,9 @@ class PhysicsModel:
 
     def see(self, x: torch.Tensor) -> torch.Tensor:
         """Simulated positions [F, P, 3] as the measurement sees them: through its lens where it has one
-        (:func:`~causalgs.discover.observation.rigid_projection`), else as they are."""
+        (:func:`~causalgs.discover.observation.rigid_projection` or, for tracks that stretch each pattern,
+        :func:`~causalgs.discover.observation.affine_projection`), else as they are."""
         if self.obs.mix is None:
             return x
-        return rigid_projection(x, self.x0.double(), self._mix, self._vol, at=self.points0.double())
+        project = LENSES[self.obs.lens_kind]
+        return project(x, self.x0.double(), self._mix, self._vol, at=self.points0.double())

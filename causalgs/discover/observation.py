@@ -53,6 +53,9 @@ class Observation:
     names: list[str] = field(default_factory=list)  # body names
     truth: dict | None = None  # synthetic scenes: the effects, materials and initial velocities used
     mix: np.ndarray | None = None  # [P, K] the tracks' rigid-motion weights (module docstring); None: points
+    # what the tracks move each pattern by: "rigid" (:func:`rigid_projection`) or "affine" (:func:`affine_projection`,
+    # tracks that also stretch each pattern)
+    lens_kind: str = "rigid"
     # (m) how finely the points describe each body's extent: a face is known to ± half of it (a fitted run: the
     # voxel its particles filled the bodies at); 0: the points are the material itself (a simulation's particles)
     shape_resolution: float = 0.0
@@ -110,6 +113,8 @@ class Observation:
                 raise CausalGSError("observation: 'mix' weights must be finite and >= 0")
             if not np.allclose(self.mix.sum(1), 1.0, atol=1e-6):
                 raise CausalGSError("observation: every point's 'mix' weights must sum to 1")
+        if self.lens_kind not in LENSES:
+            raise CausalGSError(f"observation: lens '{self.lens_kind}' is not one of {', '.join(LENSES)}")
         if self.track_error is not None:
             self.track_error = np.asarray(self.track_error, dtype=np.float64)
             if self.track_error.shape != (T, self.bodies):
@@ -149,6 +154,7 @@ class Observation:
         extra = {"truth_json": np.array(_json(self.truth))} if self.truth is not None else {}
         if self.mix is not None:
             extra["mix"] = self.mix
+            extra["lens_kind"] = np.array(self.lens_kind)
         if self.clean is not None:
             extra["clean"] = self.clean
         write_npz(Path(path), times=self.times, x=self.x, vol=self.vol, body=self.body,
@@ -192,7 +198,8 @@ def load_observation(path) -> Observation:
             density=float(d.get("density", 1000.0)), ground=opt("ground"), noise=opt("noise"),
             names=[str(s) for s in d["names"]] if "names" in d else [],
             truth=json.loads(str(d["truth_json"])) if "truth_json" in d else None, mix=d.get("mix"),
-            shape_resolution=float(d.get("shape_resolution", 0.0)), clean=d.get("clean"),
+            lens_kind=str(d.get("lens_kind", "rigid")), shape_resolution=float(d.get("shape_resolution", 0.0)),
+            clean=d.get("clean"),
         )  # fmt: skip
     except CausalGSError as e:
         raise CausalGSError(f"{path}: {e}") from None
@@ -268,6 +275,34 @@ def rigid_projection(x: torch.Tensor, x0: torch.Tensor, mix: torch.Tensor, vol: 
         d0 = at[:, None, :] - c0[None]
     fit = torch.einsum("tkij,pkj->tpki", R, d0) + c[:, None]  # [T, P, K, 3]
     return torch.einsum("pk,tpki->tpi", mix, fit)
+
+
+def affine_projection(x: torch.Tensor, x0: torch.Tensor, mix: torch.Tensor, vol: torch.Tensor,
+                      at: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
+    """:func:`rigid_projection` with an affine motion per pattern: for every frame and pattern k the map
+    x ≈ A_k (x0 − c0_k) + c_k that best fits the points' motion in the least-squares sense weighted by mix[:, k]·vol
+    (A_k = H_k M_k⁻¹, H_k the weighted cross-covariance and M_k the rest shape's weighted covariance), and every
+    point placed at Σ_k mix_ik (A_k (at_i − c0_k) + c_k). What tracks that stretch each pattern see
+    (:class:`~causalgs.model.refine.RefineConfig` ``stretch``): a squash is compared, a wobble finer than one
+    strain per pattern is not. Differentiable in ``x``."""
+    w = mix * vol[:, None]  # [P, K]
+    W = w.sum(0)  # [K]
+    c0 = (w.T @ x0) / W[:, None]  # [K, 3]
+    c = torch.einsum("pk,tpi->tki", w, x) / W[:, None]  # [T, K, 3]
+    d0 = x0[:, None, :] - c0[None]  # [P, K, 3]
+    H = torch.einsum("pk,tpi,pkj->tkij", w, x, d0)  # Σ w (x − c)(x0 − c0)ᵀ
+    M = torch.einsum("pk,pki,pkj->kij", w, d0, d0)  # Σ w (x0 − c0)(x0 − c0)ᵀ
+    # a pattern whose points lie in a plane or on a line has no stretch across it: a ridge of 1e-12 of its spread
+    ridge = 1e-12 * torch.diagonal(M, dim1=-2, dim2=-1).sum(-1).clamp_min(1e-300)
+    M = M + ridge[:, None, None] * torch.eye(3, dtype=M.dtype)
+    A = torch.linalg.solve(M.expand(H.shape), H.transpose(-1, -2)).transpose(-1, -2)  # H M⁻¹, M symmetric
+    if at is not None:
+        d0 = at[:, None, :] - c0[None]
+    fit = torch.einsum("tkij,pkj->tpki", A, d0) + c[:, None]  # [T, P, K, 3]
+    return torch.einsum("pk,tpki->tpi", mix, fit)
+
+
+LENSES = {"rigid": rigid_projection, "affine": affine_projection}
 
 
 # -- synthetic observations -------------------------------------------------------------------------------------------

@@ -277,10 +277,20 @@ def markdown(report: dict) -> str:
                   f"{len(tr['frames'])} observed frames."]  # fmt: skip
         if tr.get("lens_patterns"):
             n = tr["lens_patterns"]
-            L.append(f"The tracks move each of the run's {n} motion pattern(s) rigidly, so the simulation is compared "
-                     "through the same lens: every rollout is replaced by the rigid motion per pattern that fits it "
-                     "best. A bounce, a slide, a spin or a drag is compared in full; a body's deformation within a "
-                     "pattern (an elastic wobble) is in neither the measurement nor the comparison.")  # fmt: skip
+            if tr.get("lens") == "affine":
+                L.append(f"The tracks move and stretch each of the run's {n} motion pattern(s) (an affine motion per "
+                         "pattern: a rigid one did not follow the images, see below), so the simulation is compared "
+                         "through the same lens: every rollout is replaced by the affine motion per pattern that fits "
+                         "it best. A bounce, a slide, a spin, a drag and a body's squash or stretch are compared; a "
+                         "deformation finer than one strain per pattern is not.")  # fmt: skip
+            else:
+                L.append(f"The tracks move each of the run's {n} motion pattern(s) rigidly, so the simulation is "
+                         "compared through the same lens: every rollout is replaced by the rigid motion per pattern "
+                         "that fits it best. A bounce, a slide, a spin or a drag is compared in full; a body's "
+                         "deformation within a pattern (an elastic wobble) is in neither the measurement nor the "
+                         "comparison.")  # fmt: skip
+            if tr.get("lens_choice"):
+                L.append(tr["lens_choice"])
         blind = report.get("disagreement", {}).get("blind") or []
         if blind and max(blind) > 0.5 * report["noise"]:
             peak = int(np.argmax(blind))

@@ -24,11 +24,11 @@ DEFAULT_SPEC = "gravity;ground:mu=0.3;walls"
 DEFAULT_LEARN = ("ground.mu",)
 
 
-def load_source(source, *, refine: bool = True, progress=None) -> tuple[Observation, dict]:
+def load_source(source, *, refine: bool = True, lens: str = "auto", progress=None) -> tuple[Observation, dict]:
     """The observation at ``source`` and the base model it implies: an ``.npz`` observation file (no base: the
     defaults), or a fitted run folder (:func:`causalgs.discover.video.observation_from_run`: the run's physics; its
-    tracked motion refined frame by frame unless ``refine`` is False, ``progress(done, total)`` following it).
-    Anything else is a one-line error."""
+    tracked motion refined frame by frame unless ``refine`` is False, with the tracks' ``lens`` ("auto", "rigid" or
+    "affine"), ``progress(done, total)`` following it). Anything else is a one-line error."""
     source = Path(source)
     if source.is_dir():
         if not (source / "config.toml").is_file() or not (source / "checkpoint.pt").is_file():
@@ -36,17 +36,18 @@ def load_source(source, *, refine: bool = True, progress=None) -> tuple[Observat
                                 "run folder or an observation file (.npz)")  # fmt: skip
         from causalgs.discover.video import REFINE, observation_from_run
 
-        return observation_from_run(source, refine=REFINE if refine else None, progress=progress)
+        return observation_from_run(source, refine=REFINE if refine else None, lens_kind=lens, progress=progress)
     return load_observation(source), {}
 
 
 def run_discovery(source, out, *, spec: str | None = None, learn=None, candidates=None,
                   config: DiscoverConfig | None = None, log=None, obs: Observation | None = None,
-                  base: dict | None = None, resume: bool = False, refine: bool = True,
+                  base: dict | None = None, resume: bool = False, refine: bool = True, lens: str = "auto",
                   progress=None) -> dict:  # fmt: skip
     """Discover on ``source`` (or the given ``obs``) with the base model ``spec``/``learn`` (None: the run's own
     physics for a run folder, else :data:`DEFAULT_SPEC` / :data:`DEFAULT_LEARN`; ``obs`` with ``base``: what
-    :func:`load_source` returned for ``source``, already loaded; ``refine`` and ``progress`` as there); writes
+    :func:`load_source` returned for ``source``, already loaded; ``refine``, ``lens`` and ``progress`` as there);
+    writes
     ``report.json``,
     ``report.md``, the plots, ``discover.json`` (the options) and ``progress.json`` (the finished calibrations)
     into ``out`` and returns the report. An ``out`` that already holds a discovery run is an error unless
@@ -56,7 +57,7 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
         Effects.from_spec(spec)  # a malformed spec is a one-line error before any work
     base = dict(base or {})
     if obs is None:
-        obs, base = load_source(source, refine=refine, progress=progress)
+        obs, base = load_source(source, refine=refine, lens=lens, progress=progress)
     spec = spec if spec is not None else base.get("spec", DEFAULT_SPEC)
     learn = tuple(learn) if learn is not None else tuple(base.get("learn", DEFAULT_LEARN))
     if cfg.res <= 0:  # the run's grid, else the default
@@ -66,12 +67,13 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
                "candidates": None if candidates is None else list(candidates),
                "tracking": ("refined" if base.get("tracking", {}).get("refined") else "kinematic") if "run" in base
                else None,
-               "lens": None if obs.mix is None else f"rigid per motion pattern ({obs.mix.shape[1]})",
+               "lens": None if obs.mix is None else f"{obs.lens_kind} per motion pattern ({obs.mix.shape[1]})",
                "shape_resolution_m": obs.shape_resolution,
                "config": dataclasses.asdict(cfg), "box": [list(obs.lo), list(obs.hi)]}  # fmt: skip
     if (out / "report.json").is_file() and not (out / "progress.json").is_file() and not resume:
         raise CausalGSError(f"{out} already holds a discovery report: choose another --out")
-    key = fingerprint({**calibration_options(spec, learn, cfg), "box": [obs.lo, obs.hi]}, obs.x, obs.mix)
+    key = fingerprint({**calibration_options(spec, learn, cfg), "box": [obs.lo, obs.hi]}, obs.x, obs.mix,
+                      obs.lens_kind)
     journal = Journal(out / "progress.json", key, resume=resume)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "discover.json", options)
@@ -85,7 +87,8 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
     report, traj = discover(obs, spec, learn, candidates=candidates, config=cfg, log=log, journal=journal)
     if tracking is not None:
         report["tracking"] = {**tracking, "stray_particles": base.get("stray", 0), "pixel_m": base.get("pixel_m"),
-                              "lens_patterns": None if obs.mix is None else int(obs.mix.shape[1])}  # fmt: skip
+                              "lens_patterns": None if obs.mix is None else int(obs.mix.shape[1]),
+                              "lens": None if obs.mix is None else obs.lens_kind}  # fmt: skip
     report["source"] = str(source)
     report["config"] = options
     if obs.truth is not None:

@@ -22,13 +22,14 @@ cameras of depth / focal length): what tracking from these images can resolve.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from causalgs.discover.model import CAPACITY
-from causalgs.discover.observation import Observation, lens, noise_floor
+from causalgs.discover.observation import LENSES, Observation, lens, noise_floor
 from causalgs.errors import CausalGSError
 from causalgs.model.refine import RefineConfig, cached_tracks
 
@@ -54,14 +55,16 @@ def _load(run_dir):
 
 
 def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = CAPACITY, min_share: float = 0.05,
-                         seed: int = 0, refine: RefineConfig | None = REFINE, rigid_lens: bool = True,
+                         seed: int = 0, refine: RefineConfig | None = REFINE, lens_kind: str | None = "auto",
                          progress=None) -> tuple[Observation, dict]:  # fmt: skip
     """The observation described in the module docstring and the run's base model: ``{"spec", "learn", "res"}``,
     with ``"tracking"`` (:func:`refined_quality`) where the motion was refined (``refine``; None measures the
-    kinematic fit as it is). The tracks move every motion pattern rigidly, so the observation carries that lens
-    (``Observation.mix``, the particles' pattern weights) and discovery compares the simulation through it;
-    ``rigid_lens=False`` compares point by point. ``progress(done, total)`` follows the refinement, frame by
-    frame.
+    kinematic fit as it is). The tracks move every motion pattern as a whole, so the observation carries that lens
+    (``Observation.mix``, the particles' pattern weights, and ``lens_kind``) and discovery compares the simulation
+    through it. ``lens_kind``: "rigid" (tracks refined by a rigid correction per pattern), "affine" (by a
+    correction that also stretches each pattern), "auto" (both, and the one :func:`choose_lens` picks from
+    held-out cameras; the kinematic fit's tracks, with ``refine`` None, are rigid) or None (compare point by
+    point, rigid tracks). ``progress(done, total)`` follows the refinement, frame by frame.
 
     Discovery simulates every particle the run simulated (up to ``max_points``; beyond, a random subset of each
     body, its particles' volumes scaled to keep the body's). A thinner set is a coarser material: the MPM resolves
@@ -81,7 +84,21 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = C
         raise CausalGSError(f"held_out = {held_out} must be in (0, 0.6)")
     p = model.particles
     x0 = p.x0.to(model.fields.centres.dtype)
-    tracks = None if refine is None else cached_tracks(run_dir, model, data, tl, refine, progress)
+    if lens_kind not in (None, "auto", *LENSES):
+        raise CausalGSError(f"lens '{lens_kind}' is not one of auto, {', '.join(LENSES)}")
+    tracks, choice = None, None
+    if refine is not None:
+        kinds = ["rigid", "affine"] if lens_kind == "auto" else ["affine" if lens_kind == "affine" else "rigid"]
+        made = {}
+        for i, kind in enumerate(kinds):
+            step = None if progress is None else (lambda d, t, i=i: progress(i * t + d, len(kinds) * t))
+            made[kind] = cached_tracks(run_dir, model, data, tl, replace(refine, stretch=kind == "affine"), step)
+        if lens_kind == "auto":
+            choice = choose_lens(made["rigid"], made["affine"])
+            tracks = made[choice["lens"]]
+        else:
+            tracks = made[kinds[0]]
+    kind = "rigid" if tracks is None or not tracks.stretch else "affine"
     with torch.no_grad():
         h = model.mixtures(x0)
         if tracks is None:
@@ -120,7 +137,7 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = C
     observed = max(3, n - round(held_out * n))
     obs = Observation(times=np.arange(n) / tl.fps, x=x, vol=vol, body=body, observed=observed, lo=lo, hi=hi,
                       density=rho, ground=ground, names=[f"body {b}" for b in range(int(body.max()) + 1)],
-                      mix=lens(h) if rigid_lens else None,
+                      mix=lens(h) if lens_kind is not None else None, lens_kind=kind,
                       # the fit filled its bodies with particles at half a grid cell: a face is known to ± a quarter
                       shape_resolution=0.5 * float(model.cell))  # fmt: skip
     pixel = pixel_footprint(data.train, x[0].mean(0))
@@ -129,7 +146,34 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = C
             "stray": int(stray.sum()), "pixel_m": pixel}  # fmt: skip
     if tracks is not None:
         base["tracking"] = refined_quality(tracks)
+        if choice is not None:
+            base["tracking"]["lens_choice"] = choice["text"]
+            base["tracking"]["lens_gain_db"] = choice["gain_db"]
     return obs, base
+
+
+AFFINE_GAIN_DB = 1.0  # held-out PSNR the stretching tracks must gain over the rigid ones on a quarter of the frames
+
+
+def choose_lens(rigid, affine, gain_db: float = AFFINE_GAIN_DB, share: float = 0.25) -> dict:
+    """Which tracks measure a run's motion: the rigid ones, unless the tracks that also stretch each pattern match
+    the held-out cameras better by ``gain_db`` or more (PSNR) on at least ``share`` of the frames, as where a body
+    is squashed for good. Both are scored on cameras neither fitted, so the stretch's six more numbers per pattern
+    and frame are taken only where the images show them. Returns ``{"lens", "gain_db", "text"}``, ``gain_db`` the
+    gain at the ``1 − share`` quantile over the frames."""
+    ok = np.isfinite(rigid.psnr_after) & np.isfinite(affine.psnr_after)
+    if not ok.any():
+        return {"lens": "rigid", "gain_db": 0.0, "text": "No frame had cameras to compare rigid and stretching "
+                "tracks on; the tracks are rigid."}  # fmt: skip
+    gain = affine.psnr_after[ok] - rigid.psnr_after[ok]
+    q = float(np.quantile(gain, 1.0 - share))
+    med_r, med_a = float(np.median(rigid.psnr_after[ok])), float(np.median(affine.psnr_after[ok]))
+    kind = "affine" if q >= gain_db else "rigid"
+    text = (f"Tracks that also stretch each pattern matched the held-out cameras at a median {med_a:.1f} dB against "
+            f"{med_r:.1f} dB for rigid ones, and gained {q:+.2f} dB or more on {share:.0%} of the frames "
+            f"({'at least' if kind == 'affine' else 'below'} the {gain_db:.1f} dB asked): the tracks are "
+            f"{'affine' if kind == 'affine' else 'rigid'}.")  # fmt: skip
+    return {"lens": kind, "gain_db": q, "text": text}
 
 
 def image_residuals(run_dir, obs: Observation, traj: dict, out_png, *, views: int = 4) -> dict | None:

@@ -58,6 +58,10 @@ class RefineConfig:
     lr_turn: float = 1e-2  # rad per step, the correction's rotation r_k
     score_views: int = 2  # held-out cameras per frame for the PSNR before and after
     seed: int = 0
+    # also fit a stretch S_k per pattern (x ← Q_k exp(S_k)(x − c_k) + c_k + d_k, S_k symmetric): affine tracks, for
+    # bodies that deform for good (see :func:`choose_lens`)
+    stretch: bool = False
+    lr_stretch: float = 1e-2  # per step, the stretch's log-strain S_k
 
 
 @dataclass
@@ -72,6 +76,7 @@ class Tracks:
     psnr_after: np.ndarray
     scored_on: str
     key: str
+    stretch: bool = False  # refined with a stretch per pattern (``RefineConfig.stretch``): affine, not rigid
 
     def positions(self, h: torch.Tensor, x0: torch.Tensor, frames=None) -> torch.Tensor:
         """Positions [F, N, 3] at ``frames`` (default all) of points with mixtures ``h`` [N, K] starting at ``x0``."""
@@ -92,16 +97,29 @@ def jacobian(h: torch.Tensor, A: torch.Tensor) -> torch.Tensor:
     return torch.einsum("nk,kij->nij", h, A)
 
 
-def corrected(A: torch.Tensor, b: torch.Tensor, c: torch.Tensor, r: torch.Tensor, d: torch.Tensor):
-    """The patterns' motion (A, b) [K, 3, 3], [K, 3] after the rigid correction x ← Q (x − c) + c + d about their
-    centroids c [K, 3], Q = exp([r]×) for the rotation vectors r [K, 3]."""
+def symmetric(s: torch.Tensor) -> torch.Tensor:
+    """[..., 6] → [..., 3, 3]: the symmetric matrix with diagonal s[0:3] and off-diagonal (yz, xz, xy) s[3:6]."""
+    a, b, c, yz, xz, xy = s.unbind(-1)
+    return torch.stack([a, xy, xz, xy, b, yz, xz, yz, c], dim=-1).reshape(*s.shape[:-1], 3, 3)
+
+
+def corrected(A: torch.Tensor, b: torch.Tensor, c: torch.Tensor, r: torch.Tensor, d: torch.Tensor,
+              s: torch.Tensor | None = None):  # fmt: skip
+    """The patterns' motion (A, b) [K, 3, 3], [K, 3] after the correction x ← Q M (x − c) + c + d about their
+    centroids c [K, 3], Q = exp([r]×) for the rotation vectors r [K, 3] and M = exp(S) for the log-strains s [K, 6]
+    (:func:`symmetric`; None: M = I, a rigid correction)."""
     Q = torch.linalg.matrix_exp(skew(r))
+    if s is not None:
+        Q = Q @ torch.linalg.matrix_exp(symmetric(s))
     return Q @ A, (Q @ (b - c)[..., None])[..., 0] + c + d
 
 
 def _key(model, cfg: RefineConfig) -> str:
     """A fingerprint of what the refinement depends on: the tracked fields, the Gaussians and the settings."""
-    h = hashlib.sha256(repr(sorted(asdict(cfg).items())).encode())
+    settings = asdict(cfg)
+    if not cfg.stretch:  # rigid tracks keep the key they had before the stretch existed
+        del settings["stretch"], settings["lr_stretch"]
+    h = hashlib.sha256(repr(sorted(settings.items())).encode())
     for name, t in sorted(model.kinematic_fields.state_dict().items()):
         h.update(name.encode())
         h.update(t.detach().cpu().numpy().tobytes())
@@ -143,6 +161,8 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
     K = h.shape[1]
     r = torch.zeros(K, 3, dtype=dtype, requires_grad=True)
     d = torch.zeros(K, 3, dtype=dtype, requires_grad=True)
+    s = torch.zeros(K, 6, dtype=dtype, requires_grad=True) if cfg.stretch else None
+    steps = [(d, cfg.lr_shift), (r, cfg.lr_turn)] + ([(s, cfg.lr_stretch)] if s is not None else [])
 
     def state(A, b):
         x = place(h, x0, A, b)
@@ -168,10 +188,10 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
         with torch.no_grad():
             c = w.T @ place(h, x0, R[k], t[k])  # [K, 3]
         if k > 0 and frames and cfg.iterations > 0:
-            opt = torch.optim.Adam([{"params": [d], "lr": cfg.lr_shift}, {"params": [r], "lr": cfg.lr_turn}])
+            opt = torch.optim.Adam([{"params": [v], "lr": lr} for v, lr in steps])
             for _ in range(cfg.iterations):
                 pick = rng.choice(len(frames), size=min(cfg.views, len(frames)), replace=False)
-                means, covs = state(*corrected(R[k], t[k], c, r, d))
+                means, covs = state(*corrected(R[k], t[k], c, r, d, s))
                 loss = 0.0
                 for i in pick:
                     fr = frames[int(i)]
@@ -182,7 +202,7 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
                 loss.backward()
                 opt.step()
         with torch.no_grad():
-            A_k, b_k = corrected(R[k], t[k], c, r, d) if k > 0 else (R[k], t[k])
+            A_k, b_k = corrected(R[k], t[k], c, r, d, s) if k > 0 else (R[k], t[k])
         if judge:
             before.append(score(judge, R[k], t[k]))
             after.append(score(judge, A_k, b_k) if k > 0 else before[-1])
@@ -193,20 +213,22 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
         b_out.append(b_k.detach().double().numpy())
         if progress is not None:
             progress(k + 1, n)
-    return Tracks(np.stack(A_out), np.stack(b_out), np.array(before), np.array(after), scored_on, _key(model, cfg))
+    return Tracks(np.stack(A_out), np.stack(b_out), np.array(before), np.array(after), scored_on, _key(model, cfg),
+                  cfg.stretch)
 
 
 def cached_tracks(run_dir, model, data, timeline, cfg: RefineConfig | None = None, progress=None) -> Tracks:
     """The refined tracks of the run at ``run_dir``: read from its ``tracks.npz`` when that was made from this fit
     with these settings, else computed by :func:`refine_tracks` and written there (atomically)."""
     cfg = cfg or RefineConfig()
-    path = Path(run_dir) / "tracks.npz"
+    path = Path(run_dir) / ("tracks-affine.npz" if cfg.stretch else "tracks.npz")
     key = _key(model, cfg)
     if path.is_file():
         try:
             with np.load(path) as z:
                 if str(z["key"]) == key:
-                    return Tracks(z["A"], z["b"], z["psnr_before"], z["psnr_after"], str(z["scored_on"]), key)
+                    return Tracks(z["A"], z["b"], z["psnr_before"], z["psnr_after"], str(z["scored_on"]), key,
+                                  cfg.stretch)
         except (OSError, KeyError, ValueError):
             pass  # unreadable or of another version: made again below
     tr = refine_tracks(model, data, timeline, cfg, progress)

@@ -210,7 +210,7 @@ def test_calibration_recovers_a_throw_and_reaches_the_noise_floor():
     assert fit.theta[m.index("cube.nu")] == wrong[m.index("cube.nu")]
 
 
-@pytest.mark.parametrize("rigid_lens", [False, True])
+@pytest.mark.parametrize("rigid_lens", [False, True, "affine"])
 def test_loss_gradient_matches_finite_differences_in_float64(rigid_lens):
     from causalgs import _ti
     from causalgs.discover.calibrate import mse
@@ -222,6 +222,7 @@ def test_loss_gradient_matches_finite_differences_in_float64(rigid_lens):
         if rigid_lens:  # the simulation seen through rigid tracks: two blended patterns across the cube
             s = np.clip((obs.x[0][:, 0] + 0.06) / 0.12, 0.0, 1.0)
             obs.mix = np.stack([1.0 - s, s], 1)
+            obs.lens_kind = "affine" if rigid_lens == "affine" else "rigid"
         m = PhysicsModel(obs, "gravity;linear_drag:c=0.2;walls", ["linear_drag.c"], res=12)
         th = m.initial(E=2e4).requires_grad_(True)
         loss = mse(m, th, [1, 2, 3])
@@ -284,6 +285,47 @@ def test_rigid_projection_is_the_weighted_kabsch_fit_with_finite_gradients():
         assert torch.autograd.gradcheck(fn, (moved.requires_grad_(True),))
 
 
+def test_affine_projection_is_the_weighted_least_squares_affine_fit_with_finite_gradients():
+    from causalgs.discover.observation import affine_projection, rigid_projection
+
+    rng = np.random.default_rng(0)
+    x0 = _cube(n=5)
+    vol = rng.uniform(0.5, 1.5, len(x0))
+    one = np.ones((len(x0), 1))
+    # a squash and a shear on top of a turn, with noise: the plain reference is numpy's weighted least squares
+    F = [np.diag([1.0 + 0.3 * t, 1.0 + 0.2 * t, 1.0 / (1.0 + 0.5 * t)]) @ _turns(t, 1)[0] for t in range(3)]
+    F[2][0, 1] += 0.15
+    x = np.stack([(x0 - 0.5) @ F[t].T + 0.5 + 0.01 * t for t in range(3)]) + 0.002 * rng.standard_normal((3, 125, 3))
+    got = affine_projection(*(torch.tensor(a) for a in (x, x0, one, vol))).numpy()
+    for t in range(3):
+        X = np.hstack([x0, np.ones((len(x0), 1))]) * np.sqrt(vol)[:, None]
+        sol, *_ = np.linalg.lstsq(X, x[t] * np.sqrt(vol)[:, None], rcond=None)
+        assert np.abs(np.hstack([x0, np.ones((len(x0), 1))]) @ sol - got[t]).max() < 1e-10
+    # an affine motion per pattern passes through unchanged, and a rigid one is what the rigid lens gives too
+    s = (x0[:, 0] > 0).astype(float)
+    mix = np.stack([1.0 - s, s], 1)
+    xa = np.stack([sum(mix[:, [k]] * (x0 @ (F[t] * (1 + 0.1 * k)).T + 0.02 * k) for k in range(2)) for t in range(3)])
+    assert np.abs(affine_projection(*(torch.tensor(a) for a in (xa, x0, mix, vol))).numpy() - xa).max() < 1e-10
+    xr = np.stack([sum(mix[:, [k]] * (x0 @ _turns(t, 2)[k].T + 0.02 * k) for k in range(2)) for t in range(3)])
+    ta = [torch.tensor(a) for a in (xr, x0, mix, vol)]
+    assert torch.allclose(affine_projection(*ta), rigid_projection(*ta), atol=1e-10)
+    # the squash the rigid lens hides is in the affine lens's view
+    tx = [torch.tensor(a) for a in (x, x0, one, vol)]
+    assert (affine_projection(*tx) - tx[0]).abs().max() < 0.01 < (rigid_projection(*tx) - tx[0]).abs().max()
+    # a flat pattern (every point in a plane) has no stretch across it, and stays finite
+    flat = x0.copy()
+    flat[:, 2] = 0.3
+    out = affine_projection(*(torch.tensor(a) for a in (flat[None] + 0.01, flat, one, vol)))
+    assert torch.isfinite(out).all() and torch.allclose(out, torch.tensor(flat[None] + 0.01), atol=1e-8)
+    soft = np.clip((x0[:, 0] + 0.06) / 0.12, 0.0, 1.0)[::6]
+    soft = torch.tensor(np.stack([1.0 - soft, soft], 1))
+    pts = torch.tensor(x0[::6])
+    moved = (pts @ torch.tensor(F[1]).T + 0.001 * torch.randn(pts.shape, dtype=torch.float64))[None]
+    at = pts * 1.05
+    fn = lambda a: affine_projection(a, pts, soft, torch.ones(len(pts)).double(), at=at)  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (moved.requires_grad_(True),))
+
+
 def test_an_observation_carries_its_lens(tmp_path):
     from causalgs.discover.observation import lens
 
@@ -302,7 +344,14 @@ def test_an_observation_carries_its_lens(tmp_path):
     obs.shape_resolution = 0.0127
     obs.save(tmp_path / "obs.npz")
     back = load_observation(tmp_path / "obs.npz")
-    assert np.array_equal(back.mix, obs.mix) and back.shape_resolution == 0.0127
+    assert np.array_equal(back.mix, obs.mix) and back.shape_resolution == 0.0127 and back.lens_kind == "rigid"
+    obs.lens_kind = "affine"
+    obs.save(tmp_path / "affine.npz")
+    assert load_observation(tmp_path / "affine.npz").lens_kind == "affine"
+    with pytest.raises(CausalGSError, match="lens 'elastic'") as e:
+        Observation(times=obs.times, x=obs.x, vol=obs.vol, body=obs.body, observed=6, lo=obs.lo, hi=obs.hi,
+                    mix=obs.mix, lens_kind="elastic")  # fmt: skip
+    assert "\n" not in str(e.value)
     with pytest.raises(CausalGSError, match="no motion pattern"):
         lens(np.zeros((P, 2)))
     for bad in (-0.01, float("nan")):
