@@ -19,7 +19,9 @@ its measurement's lens, ``mix [P, K]`` (the weights of the rigid motions the tra
 simulation is then compared through that lens: :func:`rigid_projection` replaces the simulated positions by the
 blended rigid motions that fit them best (the observation operator of data assimilation). Motion a rigid pattern
 can show (a bounce, a slide, a spin, drag) is compared in full; deformation within a pattern is not compared,
-because it was not measured.
+because it was not measured. Tracks that also stretch each pattern (a body squashed for good by plastic flow) are
+compared through an affine lens instead (``lens_kind = "affine"``, :func:`affine_projection`): the affine motions
+that fit the simulation best.
 """
 
 from __future__ import annotations

@@ -462,7 +462,8 @@ def test_discovery_reads_a_fitted_run(fitted, tmp_path):
     used = h.sum(0) > 1e-3
     assert obs.mix.shape == (obs.points, int(used.sum())) and np.allclose(obs.mix.sum(1), 1.0)
     assert np.allclose(obs.mix, h[:, used] / h[:, used].sum(1, keepdims=True))
-    assert observation_from_run(fitted, refine=None, rigid_lens=False)[0].mix is None
+    assert observation_from_run(fitted, refine=None, lens_kind=None)[0].mix is None
+    assert obs.lens_kind == "rigid"  # the kinematic fit's tracks are rigid
     assert base["res"] == m.config.physics.res and base["learn"] == tuple(m.config.physics.learn)
     # The measurement's noise is at least a quarter of a pixel at the bodies (depth / focal length).
     from causalgs.discover.video import RESOLVE
@@ -701,7 +702,8 @@ def test_refinement_finds_a_displacement_the_velocity_field_missed(fitted, tmp_p
     # The discovery's measurement: the refined positions of the simulated particles (None: the kinematic fit's).
     from scipy.spatial import cKDTree
 
-    obs, base_model = observation_from_run(run, refine=quick, progress=lambda *a: pytest.fail("refined again"))
+    obs, base_model = observation_from_run(run, refine=quick, lens_kind="rigid",
+                                           progress=lambda *a: pytest.fail("refined again"))  # fmt: skip
     plain, plain_model = observation_from_run(run, refine=None)
     x0p = m.particles.x0.to(m.fields.centres.dtype)
     with torch.no_grad():
@@ -712,6 +714,18 @@ def test_refinement_finds_a_displacement_the_velocity_field_missed(fitted, tmp_p
         assert dist.max() < 1e-6  # every measured point is a refined particle position
     assert not np.allclose(obs.x[-1], plain.x[-1], atol=1e-6) and want.shape[0] == n
     assert base_model["tracking"] == refined_quality(first) and "tracking" not in plain_model
+    # "auto" refines with a stretch too (following both in one progress) and keeps the rigid tracks unless held-out
+    # cameras ask for the stretch; "affine" takes the stretching tracks whatever they score
+    steps = []
+    auto, auto_model = observation_from_run(run, refine=quick, progress=lambda *a: steps.append(a))
+    assert steps[-1] == (2 * n, 2 * n) and (run / "tracks-affine.npz").is_file()
+    assert auto_model["tracking"]["lens_choice"] and np.isfinite(auto_model["tracking"]["lens_gain_db"])
+    affine, _ = observation_from_run(run, refine=quick, lens_kind="affine")
+    assert affine.lens_kind == "affine" and np.allclose(affine.x[0], obs.x[0])
+    picked = affine if auto_model["tracking"]["lens_gain_db"] >= 1.0 else obs
+    assert auto.lens_kind == picked.lens_kind and np.array_equal(auto.x, picked.x)
+    with pytest.raises(CausalGSError, match="lens 'soft'"):
+        observation_from_run(run, refine=quick, lens_kind="soft")
     calls = []
     other = cached_tracks(run, m, data, tl, RefineConfig(iterations=3, views=1), progress=lambda *a: calls.append(a))
     assert other.key != first.key and calls[-1] == (n, n)
