@@ -6,7 +6,8 @@
    every other image from the window's newest frames; the loss includes blurred copies of both images, so a small
    fast body that no longer overlaps its image is still pulled towards it). At the end the fit is kept as the model's
    *tracked* copy of the fields, Gaussians that never move are frozen as static background (so are patches of the
-   floor that the fit moved, :func:`~causalgs.model.scene.floor_patches`, when the physics has a ground), and the
+   floor that the fit moved, :func:`~causalgs.model.scene.floor_patches`, when the physics has a ground, and a few
+   Gaussians far from every body, :func:`~causalgs.model.scene.stray_gaussians`), and the
    model as it stands is kept as ``kinematic.pt``, the kinematic-only model that evaluation compares against;
 3. **physics**: the dynamic Gaussians become MPM particles; renders of the simulated state and the distance between
    simulated and tracked positions at frame times train f_mat (materials), the fields through the initial velocity,
@@ -41,7 +42,7 @@ from causalgs.metrics import ssim
 from causalgs.model.canonical import train_canonical
 from causalgs.model.config import FitConfig
 from causalgs.model.gaussians import Gaussians
-from causalgs.model.scene import FORECAST_SOURCES, CausalGS, floor_patches, scene_bounds
+from causalgs.model.scene import FORECAST_SOURCES, CausalGS, floor_patches, scene_bounds, stray_gaussians
 from causalgs.model.timeline import Timeline
 from causalgs.sim.effects import REGISTRY, Effects
 
@@ -301,9 +302,11 @@ class Trainer:
             floor = torch.zeros_like(dynamic)
             if "ground" in Effects.from_spec(self.config.physics.effects).names():
                 floor = floor_patches(traj[0], dynamic, size, reach)  # the floor under a body that stays on it
-            m.dynamic.copy_(dynamic & ~floor)
+            stray = stray_gaussians(traj[0], dynamic & ~floor, reach)  # a few Gaussians far from every body
+            m.dynamic.copy_(dynamic & ~floor & ~stray)
         self.run.log({"stage": "kinematic", "it": self.config.kinematic.iterations, "dynamic": int(m.dynamic.sum()),
-                      "static": int((~m.dynamic).sum()), "floor": int(floor.sum())})  # fmt: skip
+                      "static": int((~m.dynamic).sum()), "floor": int(floor.sum()),
+                      "stray": int(stray.sum())})  # fmt: skip
 
     def _physics(self, start: int, opt_state) -> None:
         t0 = time.monotonic() - self.stage_seconds.get("physics", 0.0)

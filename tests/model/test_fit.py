@@ -842,3 +842,33 @@ def test_the_floor_under_a_body_is_static_and_a_body_on_it_is_not():
     dynamic = torch.arange(len(start)) >= len(wall)
     assert floor_level(wall[:, 2], float(start[dynamic, 2].median()), size) is None
     assert not floor_patches(start, dynamic, size, reach).any()
+
+
+def test_a_few_gaussians_far_from_every_body_are_strays():
+    from causalgs.model.scene import STRAY_GROUP, stray_gaussians
+
+    reach = 0.01
+    box = _grid((-0.3, -0.3, 0.2), (-0.1, -0.1, 0.3), 0.008)  # a body: its surface Gaussians alone, as 3DGS fits it
+    lo, hi = box.min(0), box.max(0)
+    shell = box[((box <= lo + 1e-9) | (box >= hi - 1e-9)).any(1)]
+    hollow = np.array([[-0.2, -0.2, 0.25], [-0.19, -0.2, 0.25]])  # inside it, farther than 2 reach from its faces
+    fringe = np.array([[-0.3, -0.2, 0.315]])  # 15 mm above its top face
+    rng = np.random.default_rng(0)
+    strays = np.column_stack([rng.uniform(0.0, 0.2, (12, 2)), rng.uniform(0.0, 0.08, 12)])  # under where it lands
+    strays = strays[np.argsort(strays[:, 0])][::2]  # apart from one another (6 of them)
+    start = torch.from_numpy(np.concatenate([shell, hollow, fringe, strays]))
+    n = np.cumsum([0, len(shell), len(hollow), len(fringe), len(strays)])
+    dynamic = torch.ones(len(start), dtype=torch.bool)
+    dynamic[-1] = False  # only dynamic Gaussians are reported
+    found = stray_gaussians(start, dynamic, reach)
+    assert not found[: n[3]].any()  # the body, the Gaussians in its hollow and its fringe stay dynamic
+    assert found[n[3] : n[4] - 1].all() and not found[-1]
+    # a group of STRAY_GROUP Gaussians is large enough to be a body, and is kept
+    clump = _grid((0.3, 0.3, 0.0), (0.3 + 0.008 * (STRAY_GROUP - 1), 0.3, 0.0), 0.008)
+    assert len(clump) == STRAY_GROUP
+    start = torch.cat([start, torch.from_numpy(clump)])
+    found = stray_gaussians(start, torch.ones(len(start), dtype=torch.bool), reach)
+    assert not found[-STRAY_GROUP:].any() and found[n[3] : n[4]].all()
+    # a sparse fit, every group small: no Gaussian can be told a stray
+    sparse = torch.from_numpy(_grid((0.0, 0.0, 0.0), (0.2, 0.2, 0.2), 0.05))
+    assert not stray_gaussians(sparse, torch.ones(len(sparse), dtype=torch.bool), reach).any()
