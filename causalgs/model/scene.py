@@ -561,11 +561,12 @@ STRAY_GROUP = 8  # a linked group of fewer dynamic Gaussians than this is too sm
 
 def stray_gaussians(start: torch.Tensor, dynamic: torch.Tensor, reach: float, smallest: int = STRAY_GROUP,
                     near: float = 2.0) -> torch.Tensor:  # fmt: skip
-    """[G] bool: the dynamic Gaussians that belong to no body: groups of them (within ``reach`` of each other at
-    t = 0, transitively) of fewer than ``smallest`` that start outside every larger group's bounds grown by
-    ``near`` × ``reach``. Nothing when no group is that large (a sparse fit: the rule cannot tell bodies from strays
-    there). A small group near a body is its fringe, and one within its bounds is inside it (3DGS puts a body's
-    Gaussians on its surface, and a few in the hollow are far from all of them): both stay dynamic.
+    """[G] bool: the dynamic Gaussians that belong to no body: groups of them (within a link of each other at t = 0,
+    transitively) of fewer than ``smallest`` that start outside every larger group's bounds grown by ``near`` links.
+    The link is ``reach``, or three times the dynamic Gaussians' median spacing where that is more (a sparse fit,
+    whose bodies' own Gaussians lie that far apart). Nothing when no group is that large: the rule cannot tell
+    bodies from strays there. A small group near a body is its fringe, and one within its bounds is inside it (3DGS
+    puts a body's Gaussians on its surface, and a few in the hollow are far from all of them): both stay dynamic.
 
     Why: where a plastic block lands and stays, the kinematic fit moved single Gaussians of the floor as well as
     whole patches of it (:func:`floor_patches`). On the plastic landing of ``causalgs synth toss`` (seed 0), 72 of
@@ -576,15 +577,18 @@ def stray_gaussians(start: torch.Tensor, dynamic: torch.Tensor, reach: float, sm
     idx = torch.nonzero(dynamic).flatten()
     if len(idx) < smallest:
         return found
+    from scipy.spatial import cKDTree
+
     x = start[idx].double().numpy()
-    label = linked_groups(x, reach)
+    link = max(reach, 3.0 * float(np.median(cKDTree(x).query(x, k=2)[0][:, 1])))
+    label = linked_groups(x, link)
     small = np.bincount(label)[label] < smallest
     if small.all() or not small.any():
         return found
     far = small.copy()
     for g in np.unique(label[~small]):
         body = x[label == g]
-        far &= ~((x >= body.min(0) - near * reach) & (x <= body.max(0) + near * reach)).all(1)
+        far &= ~((x >= body.min(0) - near * link) & (x <= body.max(0) + near * link)).all(1)
     found[idx[torch.from_numpy(far)]] = True
     return found
 
