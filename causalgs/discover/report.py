@@ -62,9 +62,9 @@ def plot_error(report: dict, traj: dict, obs: Observation, path: Path) -> None:
     floor = report["disagreement"]["floor"]
     ax.axhline(1000 * floor, color="0.4", ls=":", lw=1, label="noise floor")
     blind = np.asarray(report["disagreement"].get("blind") or [])
-    if len(blind) == len(frames) and (blind > 0.1 * floor).any():  # the deformation rigid tracks cannot follow
+    if len(blind) == len(frames) and (blind > 0.1 * floor).any():  # the deformation the tracks cannot follow
         ax.plot(frames, 1000 * np.sqrt(3) * np.maximum(blind, 1e-6), color="0.5", ls="--", lw=1,
-                label="base model's departure from rigid")  # fmt: skip
+                label=f"base model's departure from {_lens(report)}")  # fmt: skip
     dep = report["disagreement"].get("first_departure")
     if dep:
         ax.axvline(dep["frame"], color="tab:red", ls="--", lw=0.8)
@@ -139,6 +139,11 @@ def _gap(gap) -> str:
     return f"; its excess over the first, 95% paired bootstrap: [{lo:+.3g}, {hi:+.3g}] cm²"
 
 
+def _lens(report: dict) -> str:
+    """What the run's tracks move each motion pattern by: "affine" or "rigid"."""
+    return "affine" if (report.get("tracking") or {}).get("lens") == "affine" else "rigid"
+
+
 def _future_floor(report: dict) -> str:
     parts = [f"the floor {_mm(report['floor_rms_m'])}",
              f"the fit window's noise carried forward {_mm(report['predictive_rms_m'])}"]
@@ -146,7 +151,7 @@ def _future_floor(report: dict) -> str:
         parts.append(f"the bodies' extent, known to ± {_mm(report['shape_resolution_m'] / 2)} a face, carried "
                      f"forward {_mm(report['extent_rms_m'])}")
     if report.get("blind_rms_m"):
-        parts.append(f"the rigid tracks' error where the bodies deform (an impact), carried forward "
+        parts.append(f"the {_lens(report)} tracks' error where the bodies deform (an impact), carried forward "
                      f"{_mm(report['blind_rms_m'])}")
     return ", ".join(parts[:-1]) + (", and " if len(parts) > 2 else " and ") + parts[-1]
 
@@ -277,7 +282,7 @@ def markdown(report: dict) -> str:
                   f"{len(tr['frames'])} observed frames."]  # fmt: skip
         if tr.get("lens_patterns"):
             n = tr["lens_patterns"]
-            if tr.get("lens") == "affine":
+            if _lens(report) == "affine":
                 L.append(f"The tracks move and stretch each of the run's {n} motion pattern(s) (an affine motion per "
                          "pattern: a rigid one did not follow the images, see below), so the simulation is compared "
                          "through the same lens: every rollout is replaced by the affine motion per pattern that fits "
@@ -295,11 +300,12 @@ def markdown(report: dict) -> str:
         if blind and max(blind) > 0.5 * report["noise"]:
             peak = int(np.argmax(blind))
             near = [f + 1 for f, b in enumerate(blind) if b > 0.5 * blind[peak]]
-            L.append(f"The base model's bodies depart from their rigid motion by up to {_mm(blind[peak])} per "
-                     f"coordinate (frame {peak + 1}; above half of that at frames {_ranges(near)}): rigid tracks "
-                     "cannot follow that deformation and err by about as much there (on the sticky landing of "
-                     "`causalgs synth toss`, 2.7–6.4 mm at the impact against 2.8–5.7 mm of departure), and the "
-                     "held-out floor carries that error forward.")  # fmt: skip
+            kind = _lens(report)
+            L.append(f"The base model's bodies depart from their {kind} motion by up to {_mm(blind[peak])} per "
+                     f"coordinate (frame {peak + 1}; above half of that at frames {_ranges(near)}): {kind} tracks "
+                     "cannot follow that deformation and err by about as much there (rigid tracks on the sticky "
+                     "landing of `causalgs synth toss`: 2.7–6.4 mm at the impact against 2.8–5.7 mm of "
+                     "departure), and the held-out floor carries that error forward.")  # fmt: skip
         w = report.get("weights")
         if w:
             low = [f for f, v in enumerate(w["per_frame_min"]) if f > 0 and v < 0.5]

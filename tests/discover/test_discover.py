@@ -351,6 +351,11 @@ def test_the_report_says_the_measurement_was_refined_and_what_it_gained():
     text = markdown(rep)
     assert "depart from their rigid motion by up to 5.10 mm per coordinate (frame 4; above half of that at frames " \
            "4–5)" in text, text
+    rep["tracking"]["lens"] = "affine"  # tracks that stretch each pattern: the departure is from the affine motion
+    text = markdown(rep)
+    assert "move and stretch each of the run's 2 motion pattern(s)" in text
+    assert "depart from their affine motion by up to 5.10 mm" in text and "affine tracks cannot follow" in text
+    del rep["tracking"]["lens"]
     assert "weigh a residual" not in text
     rep["weights"] = {"min_weight": 0.12, "per_frame_min": [1.0, 1.0, 0.8, 0.12, 0.3, 0.6]}
     assert "weigh a residual by σ/√(σ² + e²)" in markdown(rep)
