@@ -751,6 +751,28 @@ def test_rigid_floor_keeps_point_noise_and_removes_rigid_misfit():
     assert R.rigid_floor(obs.x[frames] - drift, obs, frames) < 1e-6
 
 
+def test_through_an_affine_lens_the_floor_removes_a_squash_too():
+    """A body squashed for good (what a missing plastic flow leaves, seen through tracks that stretch each pattern)
+    is a strain of it: the floor of an affine lens removes it and keeps the point noise; a rigid lens's floor, or an
+    observation compared point by point, keeps the squash as if it were noise."""
+    obs = _flight(frames=12)
+    frames = list(range(1, 12))
+    rng = np.random.default_rng(4)
+    noise = 0.001 * rng.standard_normal((len(frames), obs.points, 3))
+    t = obs.times[frames][:, None, None]
+    q = obs.x[frames] - obs.x[frames].mean(1, keepdims=True)
+    squash = 2.0 * t * q * np.array([0.5, 0.5, -1.0])  # flattening as time goes on, the volume about kept
+    sim = obs.x[frames] - squash - noise
+    rigid = R.rigid_floor(sim, obs, frames)
+    obs.mix, obs.lens_kind = np.ones((obs.points, 1)), "affine"
+    affine = R.rigid_floor(sim, obs, frames)
+    assert abs(affine - 0.001) < 0.15 * 0.001, affine
+    assert rigid > 3 * affine, (rigid, affine)
+    assert R.rigid_floor(obs.x[frames] - squash, obs, frames) < 1e-9
+    obs.mix = None  # compared point by point: no lens, so no strain is taken for the lens's
+    assert R.rigid_floor(sim, obs, frames) == pytest.approx(rigid)
+
+
 def test_signatures_skip_the_frames_around_an_impact():
     """A body that touches down at frame 10: frames 7..13 are left out of the signatures, the rest kept."""
     T = 20
