@@ -222,8 +222,10 @@ def markdown(report: dict) -> str:
                     f"correct model would miss them by ({_mm(report['future_floor_rms_m'])}: {_future_floor(report)})")
         L += ["## Something is missing that the catalogue does not name", "",
               f"The calibrated model stays {ratio:.1f}× above the noise floor ({_mm(report['floor_rms_m'])} per "
-              f"coordinate) on the fit window and {held}, in rigid motion of the bodies "
-              "that a free force would remove, but no candidate passed "
+              f"coordinate) on the fit window and {held}, in "
+              + ("rigid motion of the bodies that a free force would remove" if _lens(report) == "rigid" else
+                 "the bodies' motion and strain, which a free force and a free strain would remove")
+              + ", but no candidate passed "
               f"the gate. A force constant over a few time blocks explains "
               f"{_pct(report['disagreement']['residual_force_gain'])} of the residual acceleration (low: impulses "
               "at contacts; high: a smooth force). Where and when: below.", ""]  # fmt: skip

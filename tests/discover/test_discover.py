@@ -409,6 +409,18 @@ def test_the_report_weighs_the_held_out_error_against_what_a_correct_model_would
     assert "fit window's noise carried forward 2.00 mm" in text
     rep["verdict"] = "unexplained discrepancy"
     assert "3.5× on the held-out frames" not in markdown(rep) and "2.1× on the held-out frames" in markdown(rep)
+    assert "in rigid motion of the bodies that a free force would remove" in markdown(rep)
+    from causalgs.discover.video import refined_quality
+    from causalgs.model.refine import Tracks
+
+    psnr = np.array([30.0, 31.0, 31.5])
+    tracks = Tracks(np.tile(np.eye(3), (3, 1, 1, 1)), np.zeros((3, 1, 3)), psnr, psnr, "val", "k", stretch=True)
+    rep["tracking"] = {**refined_quality(tracks), "lens": "affine", "lens_patterns": 1, "pixel_m": 0.0046}
+    # through an affine lens the excess over the floor is motion and strain
+    text = markdown(rep)
+    assert "in the bodies' motion and strain, which a free force and a free strain" in text
+    assert "the affine tracks' error" not in text and "rigid motion of the bodies" not in text
+    del rep["tracking"]
     # weighted residuals: the floors compare with the weighted errors, and both are shown
     rep["verdict"] = "no missing effect"
     rep["error_before"] = rep["error_after"] = {"fit_rms_m": 0.0030, "future_rms_m": 0.0080,
