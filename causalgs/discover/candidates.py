@@ -1,9 +1,9 @@
 """The catalogue of effects discovery may add: each a few bounded parameters of a registered simulator effect.
 
 A :class:`Candidate` says which term it adds to (or changes in) the model's effects spec, which parameters are then
-fitted, a probe value for the one-rollout sensitivity screen, the law in words, the residual signature it predicts
-(the *driver* its residual acceleration is proportional to) and what it is confused with
-(``../shared/DISCOVERY.md``). A candidate applies only where the base model lacks it: linear drag is not a
+fitted, a probe value for the one-rollout sensitivity screen (several for a threshold), the law in words, the
+residual signature it predicts (the *driver* its residual acceleration is proportional to) and what it is confused
+with (``../shared/DISCOVERY.md``). A candidate applies only where the base model lacks it: linear drag is not a
 discovery for a model that already has linear drag; friction is one only for a model whose ground is frictionless
 and does not learn μ.
 """
@@ -28,6 +28,13 @@ class Candidate:
     confused_with: tuple[str, ...] = ()
     replaces: str | None = None  # a base effect this one replaces (sticky ground replaces ground)
     start: tuple[float, ...] | None = None  # value before fitting (default 0: the effect off)
+    # Further probes the screen tries (the best one counts), for an effect that acts only past a threshold: how much
+    # a yield stress explains depends on how far below the rollout's stresses it is, and one probe may see no flow.
+    probes: tuple[tuple[float, ...], ...] = ()
+
+    def screen_probes(self) -> tuple[tuple[float, ...], ...]:
+        """The probe values the screen tries: :attr:`probe` first, then :attr:`probes`."""
+        return (self.probe, *self.probes)
 
     def applies(self, base: Effects, learn) -> bool:
         names = base.names()
@@ -75,7 +82,7 @@ CATALOGUE: tuple[Candidate, ...] = (
     Candidate("sticky", "sticky ground", "v = 0 at contact", "ground_sticky", ("ground_sticky.d",), (0.0,),
               "contact", ("friction",), replaces="ground"),
     Candidate("plasticity", "plasticity (von Mises yield)", "|dev τ| ≤ yield_stress", "plasticity",
-              ("plasticity.yield_stress",), (2e3,), "plastic", (), start=(1e5,)),
+              ("plasticity.yield_stress",), (2e3,), "plastic", (), start=(1e5,), probes=((8e3,), (5e2,))),
 )  # fmt: skip
 
 BY_KEY = {c.key: c for c in CATALOGUE}

@@ -12,7 +12,7 @@ A refit candidate is accepted only if all of these hold (``../shared/DISCOVERY.m
    collapses to nothing: a viscosity pinned at its cap read as 10¹⁵ standard errors from zero);
 4. the refit reaches the floor: its fit-window RMS is below the base's, within ``floor_factor`` (1.1×) of the best
    any model reached on this data or of the noise floor measured from the data, whichever is larger
-   (:func:`causalgs.discover.residuals.rigid_floor`; below the noise, a better fit of the window is fitting the
+   (:func:`causalgs.discover.residuals.lens_floor`; below the noise, a better fit of the window is fitting the
    noise and tells candidates nothing), and within ``noise_factor`` (1.25×) of that noise floor; otherwise the
    candidate explains only part of the discrepancy ("not converged", or an effect the catalogue does not name);
 5. the refit predicts the held-out frames to within ``future_factor`` (3×) of what a correct model would miss

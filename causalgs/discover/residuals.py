@@ -176,24 +176,41 @@ def affine_basis(r: np.ndarray) -> np.ndarray:
     return A.reshape(-1, 12)
 
 
-def rigid_floor(sim: np.ndarray, obs: Observation, frames) -> float:
+def quadratic_basis(r: np.ndarray) -> np.ndarray:
+    """[3n, 30]: :func:`affine_basis` and, per coordinate, the six second-order monomials of the offsets ``r``
+    (x², y², z², xy, xz, yz): a body bent or bulged as well as strained."""
+    mono = np.stack([r[:, 0] ** 2, r[:, 1] ** 2, r[:, 2] ** 2, r[:, 0] * r[:, 1], r[:, 0] * r[:, 2],
+                     r[:, 1] * r[:, 2]], axis=1)  # fmt: skip
+    Q = np.zeros((len(r), 3, 18))
+    for i in range(3):
+        Q[:, i, 6 * i : 6 * i + 6] = mono
+    return np.concatenate([affine_basis(r), Q.reshape(-1, 18)], axis=1)
+
+
+def lens_floor(sim: np.ndarray, obs: Observation, frames) -> float:
     """Per-coordinate RMS (m) of what is left of the residual (measured − simulated, [F, P, 3] at ``frames``) once
     every body's best rigid motion is removed frame by frame (a translation and a small rotation, least squares);
-    its best affine motion (a translation and any linear map: a squash too) where the measurement's lens is affine
-    (tracks that stretch each pattern, :attr:`Observation.lens_kind`).
+    where the measurement's lens is affine (tracks that stretch each pattern, :attr:`Observation.lens_kind`), its
+    best smooth deformation instead: a translation, any linear map and a second-order bend or bulge
+    (:func:`quadratic_basis`).
+
+    The part of a residual that no better dynamics of the bodies the lens can show could remove: measurement noise
+    and the noise of the reconstructed rest shape (each point's start offset), which are independent from point to
+    point. A missing force, drag or friction moves a body as a whole and is removed with the rigid part, so this is
+    the floor a correct model reaches, estimated from the data and the base fit alone.
 
     Through an affine lens a missing effect that squashes a body for good (plastic flow) leaves a residual that is
-    a strain of the body; with only the rigid part removed it counted as noise. On the plastic landing of
-    ``causalgs synth toss`` (seed 0, from video) the floor came out at 18.2 mm per coordinate, 8.6× the noise
-    credited to the tracks, and the base model, 23.7 mm off on the fit window, was read as within 1.3× of it.
-
-    The part of a residual that no better dynamics of nearly rigid bodies could remove: measurement noise and the
-    noise of the reconstructed rest shape (each point's start offset), which are independent from point to point.
-    A missing force, drag or friction moves a body as a whole and is removed with the rigid part, so this is the
-    floor a correct model reaches, estimated from the data and the base fit alone."""
+    a deformation of the body, and the rigid part alone counted it as noise: on the plastic landing of ``causalgs
+    synth toss`` (seed 0, from video) that floor came out at 18.2 mm per coordinate, 8.6× the noise credited to the
+    tracks, and the base model, 23.7 mm off on the fit window, was read as within 1.3× of it; removing each body's
+    best affine motion instead still left 10.7 mm, 5× the noise. A body squashed on the ground is not strained
+    uniformly: its foot, held by the ground, spreads differently from its top, a bulge the tracks' patterns show
+    and no single linear map follows. The deformation cannot be removed pattern by pattern instead: the tracks and
+    the simulation seen through the same lens are both blends of the patterns' affine motions, so their difference
+    is too, and removing those would leave nothing at all."""
     frames = list(frames)
     r = obs.x[frames] - sim
-    basis = affine_basis if obs.mix is not None and obs.lens_kind == "affine" else twist_basis
+    basis = quadratic_basis if obs.mix is not None and obs.lens_kind == "affine" else twist_basis
     left, count = 0.0, 0
     for b in range(obs.bodies):
         sel = obs.body == b

@@ -5,6 +5,10 @@ At the base fit θ_b the residual is r = x_obs − x(θ_b) over the fit frames. 
 J_c (one rollout at its probe value) is what the new effect adds. The joint linear least-squares step on [J_b, J_c]
 predicts the candidate's gain *beyond* a recalibration of the base, i.e. with J_c projected off J_b: a candidate
 whose signature the base parameters can mimic (a stiffness change, a different throw) scores nothing here.
+An effect that acts only past a threshold (a yield stress) is probed at several values, a rollout each, and scored
+by the probe that explains most: one probe above every stress of the rollout sees no flow at all, and one far
+below it flows so much that its secant points elsewhere. On the plastic landing from video (seed 0, 144 frames)
+the single probe of 2 kPa put plasticity last of six (gain 0.083), and it was never refitted.
 Structural candidates (a sticky ground in place of a Coulomb one) have no "off" value; their screen compares the
 base-projected residuals with and without the change.
 """
@@ -59,6 +63,7 @@ class Screened:
     step: dict  # predicted parameter values
     model: PhysicsModel
     theta: torch.Tensor  # the candidate model's θ at the base fit (the refit's start)
+    probe: tuple[float, ...] | None = None  # the probe values that scored ``gain`` (None: a structural change)
 
 
 def screen(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate], frames,
@@ -85,20 +90,25 @@ def screen(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate],
             gain = (rb - rr) / max(rb, 1e-300)
             out.append(Screened(c, gain, {p: model.values(th)[p] for p in c.params}, model, th))
             continue
-        cols = []
-        for p, i, probe in zip(c.params, idx, c.probe, strict=True):
-            knob = model.knobs[i]
-            th2 = th.clone()
-            th2[i] = knob.internal(probe)
-            start = model.values(th)[p]
-            try:
-                cols.append((positions(model, th2, frames) - xc) / (probe - start))
-            except CausalGSError:
-                cols.append(np.zeros_like(xc))
-        Jc = np.stack(cols, axis=1)
-        rr, sol = _residual_after(np.concatenate([Jb, Jc], axis=1), rc)
-        gain = (rb - rr) / max(rb, 1e-300)
+        best = None
+        for probes in c.screen_probes():  # a threshold's probes: the one that explains most counts
+            cols = []
+            for p, i, probe in zip(c.params, idx, probes, strict=True):
+                knob = model.knobs[i]
+                th2 = th.clone()
+                th2[i] = knob.internal(probe)
+                start = model.values(th)[p]
+                try:
+                    cols.append((positions(model, th2, frames) - xc) / (probe - start))
+                except CausalGSError:
+                    cols.append(np.zeros_like(xc))
+            Jc = np.stack(cols, axis=1)
+            rr, sol = _residual_after(np.concatenate([Jb, Jc], axis=1), rc)
+            gain = (rb - rr) / max(rb, 1e-300)
+            if best is None or gain > best[0]:
+                best = (gain, sol, probes)
+        gain, sol, probes = best
         start = model.values(th)
         step = {p: start[p] + float(s) for p, s in zip(c.params, sol[Jb.shape[1] :], strict=True)}
-        out.append(Screened(c, gain, step, model, th))
+        out.append(Screened(c, gain, step, model, th, probes))
     return sorted(out, key=lambda s: -s.gain)

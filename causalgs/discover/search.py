@@ -10,7 +10,8 @@ name, repair, repeat.
 - ``"no missing effect"``: no candidate passed and a small free residual force does not help either;
 - ``"unexplained discrepancy"``: no candidate passed, but the base stays well above the noise floor on the fit
   window or, further still, on the held-out frames
-  (:func:`causalgs.discover.residuals.rigid_floor`, what no rigid motion of the bodies removes), so a free force per
+  (:func:`causalgs.discover.residuals.lens_floor`, what no rigid motion of the bodies removes, nor a smooth
+  deformation through an affine lens), so a free force per
   body and frame would help: something is missing that the catalogue does not name. The report says where and when
   (the first departure, the error by contact state) and how much of the residual a force constant over a few time
   blocks explains (``residual_force_gain``: low for impulses at contacts, high for smooth forces).
@@ -176,7 +177,8 @@ def _refit(base: State, s, cfg: DiscoverConfig, journal: Journal, where: str) ->
     c: Candidate = s.candidate
     model = s.model
     th = s.theta.clone()
-    for j, (p, probe) in enumerate(zip(c.params, c.probe, strict=True)):  # off zero (softplus is flat there)
+    probes = s.probe or c.probe  # the probe that scored best in the screen
+    for j, (p, probe) in enumerate(zip(c.params, probes, strict=True)):  # off zero (softplus is flat there)
         i = model.index(p)
         start = s.step.get(p, probe)
         if c.replaces is None:
@@ -365,7 +367,7 @@ def rest_shape_error(state: State, obs: Observation, floor: float, sigma: float)
     e = sqrt(floor² − sigma²), the floor taken at ``state`` (a repaired model) when lower than ``floor`` (the
     base's, which a missing effect that deforms the body inflates)."""
     fr = fit_frames(state.model)
-    here = max(R.rigid_floor(state.sim[[f - 1 for f in fr]], obs, fr), sigma)
+    here = max(R.lens_floor(state.sim[[f - 1 for f in fr]], obs, fr), sigma)
     return math.sqrt(max(min(floor, here) ** 2 - sigma**2, 0.0))
 
 
@@ -826,8 +828,9 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
     }
     fr0 = fit_frames(base_model)
     # The floor a correct model reaches (per coordinate): the part of the base's residual that no rigid motion of
-    # the bodies removes (noise, a noisy rest shape), never below the measurement noise itself.
-    floor_coord = max(R.rigid_floor(base.sim[[f - 1 for f in fr0]], obs, fr0), sigma)
+    # the bodies removes (no smooth deformation, through an affine lens: noise, a noisy rest shape), never below the
+    # measurement noise itself.
+    floor_coord = max(R.lens_floor(base.sim[[f - 1 for f in fr0]], obs, fr0), sigma)
     report["floor_rms_m"] = floor_coord
     floor = math.sqrt(3) * floor_coord  # per point (3D), for the error curves
     report["disagreement"] = _disagreement(base, obs, floor)
@@ -990,7 +993,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         # base's floor overstates the noise; the repaired model's is the better estimate (either bounds it above).
         fr = fit_frames(current.model)
         report["floor_rms_base_m"] = floor_coord
-        report["floor_rms_m"] = min(floor_coord, max(R.rigid_floor(current.sim[[f - 1 for f in fr]], obs, fr), sigma))
+        report["floor_rms_m"] = min(floor_coord, max(R.lens_floor(current.sim[[f - 1 for f in fr]], obs, fr), sigma))
     report["error_before"], report["error_after"] = _errors(first), _errors(current)
     report["final_spec"] = current.model.spec_at(current.fit.theta)
     report["seconds"] = time.monotonic() - t0

@@ -733,7 +733,7 @@ def test_a_parameter_the_data_does_not_move_is_not_significant():
     assert z_score(0.0, 0.0, 0.0) == 0.0
 
 
-def test_rigid_floor_keeps_point_noise_and_removes_rigid_misfit():
+def test_lens_floor_keeps_point_noise_and_removes_rigid_misfit():
     """The floor a correct model can reach: a residual made of a rigid drift per frame (what a missing force leaves)
     is removed; independent per-point noise and a per-point start offset (a noisy rest shape) are kept."""
     obs = _flight(frames=12)
@@ -745,16 +745,16 @@ def test_rigid_floor_keeps_point_noise_and_removes_rigid_misfit():
     q = obs.x[frames] - obs.x[frames].mean(1, keepdims=True)
     drift = 0.3 * t**2 * np.array([1.0, 0.0, -0.5]) + np.cross([0.0, 0.2 * t.ravel()[0], 0.0], q)
     sim = obs.x[frames] - drift - offset - noise
-    floor = R.rigid_floor(sim, obs, frames)
+    floor = R.lens_floor(sim, obs, frames)
     expected = math.sqrt(0.002**2 + 0.001**2)
     assert abs(floor - expected) < 0.15 * expected, (floor, expected)
-    assert R.rigid_floor(obs.x[frames] - drift, obs, frames) < 1e-6
+    assert R.lens_floor(obs.x[frames] - drift, obs, frames) < 1e-6
 
 
-def test_through_an_affine_lens_the_floor_removes_a_squash_too():
+def test_through_an_affine_lens_the_floor_removes_a_squash_and_a_bulge_too():
     """A body squashed for good (what a missing plastic flow leaves, seen through tracks that stretch each pattern)
-    is a strain of it: the floor of an affine lens removes it and keeps the point noise; a rigid lens's floor, or an
-    observation compared point by point, keeps the squash as if it were noise."""
+    is a strain of it and a bulge: the floor of an affine lens removes both and keeps the point noise; a rigid
+    lens's floor, or an observation compared point by point, keeps the squash as if it were noise."""
     obs = _flight(frames=12)
     frames = list(range(1, 12))
     rng = np.random.default_rng(4)
@@ -762,15 +762,25 @@ def test_through_an_affine_lens_the_floor_removes_a_squash_too():
     t = obs.times[frames][:, None, None]
     q = obs.x[frames] - obs.x[frames].mean(1, keepdims=True)
     squash = 2.0 * t * q * np.array([0.5, 0.5, -1.0])  # flattening as time goes on, the volume about kept
-    sim = obs.x[frames] - squash - noise
-    rigid = R.rigid_floor(sim, obs, frames)
+    z = q[..., 2:] / np.abs(q[..., 2]).max()
+    bulge = 0.1 * t / t.max() * (1.0 - z) * q * np.array([1.0, 1.0, 0.0])  # the foot spreads most
+    sim = obs.x[frames] - squash - bulge - noise
+    rigid = R.lens_floor(sim, obs, frames)
     obs.mix, obs.lens_kind = np.ones((obs.points, 1)), "affine"
-    affine = R.rigid_floor(sim, obs, frames)
-    assert abs(affine - 0.001) < 0.15 * 0.001, affine
-    assert rigid > 3 * affine, (rigid, affine)
-    assert R.rigid_floor(obs.x[frames] - squash, obs, frames) < 1e-9
+    smooth = R.lens_floor(sim, obs, frames)
+    assert abs(smooth - 0.001) < 0.15 * 0.001, smooth
+    assert rigid > 3 * smooth, (rigid, smooth)
+    assert R.lens_floor(obs.x[frames] - squash - bulge, obs, frames) < 1e-9
+    # the bulge is no strain: one linear map per body leaves it, counted as noise
+    r = (squash + bulge + noise).reshape(len(frames), -1)
+    linear = []
+    for k in range(len(frames)):
+        A = R.affine_basis(q[k])
+        sol, *_ = np.linalg.lstsq(A, r[k], rcond=None)
+        linear.append(r[k] - A @ sol)
+    assert np.sqrt(np.mean(np.square(linear))) > 1.5 * smooth
     obs.mix = None  # compared point by point: no lens, so no strain is taken for the lens's
-    assert R.rigid_floor(sim, obs, frames) == pytest.approx(rigid)
+    assert R.lens_floor(sim, obs, frames) == pytest.approx(rigid)
 
 
 def test_signatures_skip_the_frames_around_an_impact():
@@ -1128,3 +1138,38 @@ def test_a_model_is_settled_only_within_the_noise_on_both_windows():
     assert not settled(State(None, None, train=0.0079, future=0.5, sim=None, spread=2.2e-3, extent=2.4e-3,
                              blind=2.0e-3), floor)  # misses the held-out frames  # fmt: skip
     assert not settled(State(None, None, train=0.0079, future=0.0845, sim=None), floor)  # no spread: the tracks' own
+
+
+def test_a_yield_stress_is_screened_at_the_probe_that_sees_flow():
+    """A threshold is screened at several probes and scored by the best: a cube that landed and flowed (yield stress
+    1 kPa) is explained by a probe near it, not by one above every stress of the rollout (no flow, no gain)."""
+    import dataclasses
+
+    from causalgs import _ti
+    from causalgs.discover.candidates import BY_KEY
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.screen import screen, transfer
+
+    _ti.init("cpu", "float32")
+    x0 = _cube(n=4, centre=(0.0, 0.0, 0.1))
+    t = np.arange(16) / 60.0
+    obs = Observation(times=t, x=np.repeat(x0[None], len(t), 0), vol=np.full(len(x0), 0.12**3 / len(x0)),
+                      body=np.zeros(len(x0)), observed=14, lo=(-0.6, -0.6, -0.1), hi=(0.6, 0.6, 1.1),
+                      names=["cube"])  # fmt: skip
+    truth = PhysicsModel(obs, "gravity;ground:mu=0.3;walls;plasticity:yield_stress=1000.0", res=16)
+    th = truth.initial(E=3e4)
+    for i, k in enumerate(truth.knobs):
+        if k.kind == "u":
+            th[i] = (0.0, 0.0, -1.5)[k.index]
+    with torch.no_grad():
+        obs.x[1:] = truth.rollout(th).numpy()
+    base = PhysicsModel(obs, "gravity;ground:mu=0.3;walls", res=16)
+    theta = transfer(truth, th, base)
+    frames = list(range(1, obs.observed))
+    plastic = BY_KEY["plasticity"]
+    above = dataclasses.replace(plastic, probe=(1e6,), probes=())
+    both = dataclasses.replace(plastic, probe=(1e6,), probes=((1200.0,),))
+    (s_above,) = screen(base, theta, [above], frames)
+    (s_both,) = screen(base, theta, [both], frames)
+    assert s_above.gain < 0.05 and s_above.probe == (1e6,), s_above.gain
+    assert s_both.gain > 0.5 and s_both.probe == (1200.0,), s_both.gain
