@@ -202,12 +202,13 @@ def lens_floor(sim: np.ndarray, obs: Observation, frames) -> float:
     Through an affine lens a missing effect that squashes a body for good (plastic flow) leaves a residual that is
     a deformation of the body, and the rigid part alone counted it as noise: on the plastic landing of ``causalgs
     synth toss`` (seed 0, from video) that floor came out at 18.2 mm per coordinate, 8.6× the noise credited to the
-    tracks, and the base model, 23.7 mm off on the fit window, was read as within 1.3× of it; removing each body's
-    best affine motion instead still left 10.7 mm, 5× the noise. A body squashed on the ground is not strained
-    uniformly: its foot, held by the ground, spreads differently from its top, a bulge the tracks' patterns show
-    and no single linear map follows. The deformation cannot be removed pattern by pattern instead: the tracks and
-    the simulation seen through the same lens are both blends of the patterns' affine motions, so their difference
-    is too, and removing those would leave nothing at all."""
+    tracks, and the base model, 23.7 mm off on the fit window, was read as within 1.3× of it. A body squashed on
+    the ground is not strained uniformly either: its foot, held by the ground, spreads differently from its top, a
+    bulge the tracks' patterns show and no single linear map follows. On a second fit of that landing (16
+    patterns) the base's residual left 14.6 mm per coordinate without each body's rigid motion, 7.5 mm without its
+    affine motion, 4.4 mm without this basis and 3.7 mm with third-order terms too (noise 1.9 mm). The deformation
+    cannot be removed pattern by pattern instead: the tracks and the simulation seen through the same lens are both
+    blends of the patterns' affine motions, so their difference is too, and removing those would leave nothing."""
     frames = list(frames)
     r = obs.x[frames] - sim
     basis = quadratic_basis if obs.mix is not None and obs.lens_kind == "affine" else twist_basis

@@ -19,7 +19,7 @@ Two windows:
 
 The hidden plasticity has a yield stress of 5 kPa (the trajectory table's 1.5 kPa): the block lands and keeps a
 flattened foot, its extent across the ground 18.6 × 15.1 cm before the impact and 22.4 × 19.1 cm after it
-(seed 0). At 1.5 kPa it splats into a pancake 34.0 × 31.3 × 5.5 cm; no tracker of nine patterns, each moved
+(seed 0). At 1.5 kPa it splats into a pancake 34.0 × 31.3 × 5.5 cm; no tracker of a few patterns, each moved
 rigidly or affinely, follows that from the images (the refined tracks were 21–31 mm from the truth after the
 impact, rigid or affine), and no model fits tracks that far from the motion, so that case measured the tracking,
 not discovery.
