@@ -59,8 +59,9 @@ class DiscoverConfig:
     # relative held-out error within which two passing candidates tie (beyond it, they still tie where the paired
     # bootstrap of their held-out difference reaches zero)
     ambiguity_future: float = 0.15
-    # No candidate passed but the base stays this many times above the noise floor: the excess is rigid motion of
-    # the bodies (the floor is what no rigid motion removes), which a free force per body and frame would remove.
+    # No candidate passed but the base stays this many times above the noise floor: the excess is motion of the
+    # bodies the lens shows (the floor is what no rigid motion removes, through an affine lens no smooth
+    # deformation), which a free force per body and frame would remove.
     unexplained_floor: float = 1.5
     # ... or its held-out error stays this many times above what a correct model would miss them by (the floor and
     # the fit window's noise carried forward, :func:`predictive_rms`): the fit window is matched by compensating
@@ -363,9 +364,9 @@ def rest_shape_draws(model: PhysicsModel, theta: torch.Tensor, J: np.ndarray, si
 
 def rest_shape_error(state: State, obs: Observation, floor: float, sigma: float) -> float:
     """The rest shape's own error per coordinate (m). A correct model's residual is the current frame's noise plus
-    the rest shape's error carried along, so its floor (what no rigid motion removes) is about sqrt(sigma² + e²):
-    e = sqrt(floor² − sigma²), the floor taken at ``state`` (a repaired model) when lower than ``floor`` (the
-    base's, which a missing effect that deforms the body inflates)."""
+    the rest shape's error carried along, so its floor (:func:`~causalgs.discover.residuals.lens_floor`) is about
+    sqrt(sigma² + e²): e = sqrt(floor² − sigma²), the floor taken at ``state`` (a repaired model) when lower than
+    ``floor`` (the base's, which a missing effect that deforms the body inflates)."""
     fr = fit_frames(state.model)
     here = max(R.lens_floor(state.sim[[f - 1 for f in fr]], obs, fr), sigma)
     return math.sqrt(max(min(floor, here) ** 2 - sigma**2, 0.0))
