@@ -733,6 +733,28 @@ def test_a_parameter_the_data_does_not_move_is_not_significant():
     assert z_score(0.0, 0.0, 0.0) == 0.0
 
 
+def _thrown_cube(spec: str, centre, velocity, observed: int):
+    """(observation, truth model, truth θ): a cube of 64 points thrown at ``velocity`` from ``centre`` and simulated
+    with the effects ``spec`` for 16 frames at 60 fps on 16 cells; the measurement is that rollout."""
+    from causalgs import _ti
+    from causalgs.discover.model import PhysicsModel
+
+    _ti.init("cpu", "float32")
+    x0 = _cube(n=4, centre=centre)
+    t = np.arange(16) / 60.0
+    obs = Observation(times=t, x=np.repeat(x0[None], len(t), 0), vol=np.full(len(x0), 0.12**3 / len(x0)),
+                      body=np.zeros(len(x0)), observed=observed, lo=(-0.6, -0.6, -0.1), hi=(0.6, 0.6, 1.1),
+                      names=["cube"])  # fmt: skip
+    truth = PhysicsModel(obs, spec, res=16)
+    th = truth.initial(E=3e4)
+    for i, k in enumerate(truth.knobs):
+        if k.kind == "u":
+            th[i] = velocity[k.index]
+    with torch.no_grad():
+        obs.x[1:] = truth.rollout(th).numpy()
+    return obs, truth, th
+
+
 def test_lens_floor_keeps_point_noise_and_removes_rigid_misfit():
     """The floor a correct model can reach: a residual made of a rigid drift per frame (what a missing force leaves)
     is removed; independent per-point noise and a per-point start offset (a noisy rest shape) are kept."""
@@ -846,25 +868,13 @@ def test_a_second_round_screen_starts_from_the_accepted_model():
     screen's gains lie in [0, 1] and the effect still missing explains nearly all of the residual. A candidate that
     started from another motion would score the gap between the two (a gain of −1000 reads as a worse fit, not as
     a useless candidate)."""
-    from causalgs import _ti
     from causalgs.discover.calibrate import positions
     from causalgs.discover.candidates import BY_KEY
     from causalgs.discover.model import PhysicsModel
     from causalgs.discover.screen import screen, transfer
 
-    _ti.init("cpu", "float32")
-    x0 = _cube(n=4, centre=(0.0, 0.0, 0.12))
-    t = np.arange(16) / 60.0
-    obs = Observation(times=t, x=np.repeat(x0[None], len(t), 0), vol=np.full(len(x0), 0.12**3 / len(x0)),
-                      body=np.zeros(len(x0)), observed=12, lo=(-0.6, -0.6, -0.1), hi=(0.6, 0.6, 1.1),
-                      names=["cube"])  # fmt: skip
-    truth = PhysicsModel(obs, "gravity;ground:mu=0.3;walls;damping:eta=40;linear_drag:c=2.0", res=16)
-    th = truth.initial(E=3e4)
-    for i, k in enumerate(truth.knobs):
-        if k.kind == "u":
-            th[i] = (1.2, 0.0, 0.8)[k.index]
-    with torch.no_grad():
-        obs.x[1:] = truth.rollout(th).numpy()
+    obs, truth, th = _thrown_cube("gravity;ground:mu=0.3;walls;damping:eta=40;linear_drag:c=2.0", (0.0, 0.0, 0.12),
+                                  (1.2, 0.0, 0.8), observed=12)
     # The repaired model of round 1: damping accepted at its fitted (here: true) value; drag still missing.
     base = PhysicsModel(obs, "gravity;ground:mu=0.3;walls;damping:eta=0.0", learn=["damping.eta"], res=16)
     theta = transfer(truth, th, base, extra={"damping.eta": 40.0})
@@ -1145,24 +1155,12 @@ def test_a_yield_stress_is_screened_at_the_probe_that_sees_flow():
     1 kPa) is explained by a probe near it, not by one above every stress of the rollout (no flow, no gain)."""
     import dataclasses
 
-    from causalgs import _ti
     from causalgs.discover.candidates import BY_KEY
     from causalgs.discover.model import PhysicsModel
     from causalgs.discover.screen import screen, transfer
 
-    _ti.init("cpu", "float32")
-    x0 = _cube(n=4, centre=(0.0, 0.0, 0.1))
-    t = np.arange(16) / 60.0
-    obs = Observation(times=t, x=np.repeat(x0[None], len(t), 0), vol=np.full(len(x0), 0.12**3 / len(x0)),
-                      body=np.zeros(len(x0)), observed=14, lo=(-0.6, -0.6, -0.1), hi=(0.6, 0.6, 1.1),
-                      names=["cube"])  # fmt: skip
-    truth = PhysicsModel(obs, "gravity;ground:mu=0.3;walls;plasticity:yield_stress=1000.0", res=16)
-    th = truth.initial(E=3e4)
-    for i, k in enumerate(truth.knobs):
-        if k.kind == "u":
-            th[i] = (0.0, 0.0, -1.5)[k.index]
-    with torch.no_grad():
-        obs.x[1:] = truth.rollout(th).numpy()
+    obs, truth, th = _thrown_cube("gravity;ground:mu=0.3;walls;plasticity:yield_stress=1000.0", (0.0, 0.0, 0.1),
+                                  (0.0, 0.0, -1.5), observed=14)
     base = PhysicsModel(obs, "gravity;ground:mu=0.3;walls", res=16)
     theta = transfer(truth, th, base)
     frames = list(range(1, obs.observed))
