@@ -92,7 +92,7 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = C
         made = {}
         for i, kind in enumerate(kinds):
             step = None if progress is None else (lambda d, t, i=i: progress(i * t + d, len(kinds) * t))
-            made[kind] = cached_tracks(run_dir, model, data, tl, replace(refine, stretch=kind == "affine"), step)
+            made[kind] = cached_tracks(run_dir, model, data, tl, lens_refinement(refine, kind), step)
         if lens_kind == "auto":
             choice = choose_lens(made["rigid"], made["affine"])
             tracks = made[choice["lens"]]
@@ -150,6 +150,18 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = C
             base["tracking"]["lens_choice"] = choice["text"]
             base["tracking"]["lens_gain_db"] = choice["gain_db"]
     return obs, base
+
+
+STRETCH_GROUND = 10.0  # per metre: the stretching tracks' weight on their depth under the ground (RefineConfig.ground)
+
+
+def lens_refinement(refine: RefineConfig, kind: str) -> RefineConfig:
+    """The refinement that makes the ``kind`` lens's tracks: ``refine`` rigid, or with a stretch per pattern and
+    (unless ``refine`` sets one) :data:`STRETCH_GROUND` on the depth under the run's ground, where no camera sees
+    a stretch grow."""
+    if kind != "affine":
+        return replace(refine, stretch=False)
+    return replace(refine, stretch=True, ground=refine.ground or STRETCH_GROUND)
 
 
 AFFINE_GAIN_DB = 1.0  # held-out PSNR the stretching tracks must gain over the rigid ones on a quarter of the frames

@@ -71,6 +71,10 @@ class RefineConfig:
     # bodies that deform for good (see :func:`choose_lens`)
     stretch: bool = False
     lr_stretch: float = 1e-2  # per step, the stretch's log-strain S_k
+    # weight (per metre) of the mean depth of the moving Gaussians below the run's ground plane, added to each
+    # frame's image loss (0: none). No camera sees under an opaque floor, so nothing else stops a stretch from
+    # growing there (see the module docstring)
+    ground: float = 0.0
 
 
 @dataclass
@@ -123,11 +127,40 @@ def corrected(A: torch.Tensor, b: torch.Tensor, c: torch.Tensor, r: torch.Tensor
     return Q @ A, (Q @ (b - c)[..., None])[..., 0] + c + d
 
 
+GROUNDS = ("ground", "floor", "ground_sticky")  # the effects that are a ground plane n·x = d
+
+
+def ground_plane(model) -> tuple[np.ndarray, float] | None:
+    """(unit normal n [3], offset d) of the fitted ground plane n·x = d (the material is where n·x ≥ d): the first
+    ground effect of the run's physics at its learned values; None without one."""
+    from causalgs.sim.effects import Effects
+
+    eff = Effects.from_spec(model.config.physics.effects)
+    flat = model.effect_params.detach().double().numpy()
+    if len(flat) == len(eff.param_names()):  # the learned values (before the physical stage: the config's)
+        eff.set_flat(flat)
+    for name in eff.names():
+        if name in GROUNDS:
+            n = eff.get(name, "n")
+            norm = float(np.linalg.norm(n))
+            if norm > 0:
+                return n / norm, float(eff.get(name, "d")[0]) / norm
+    return None
+
+
+def below(x: torch.Tensor, plane: tuple[np.ndarray, float]) -> torch.Tensor:
+    """The mean depth (m) of the points x [N, 3] under the plane (n, d): mean of max(d − n·x, 0)."""
+    n, d = plane
+    return torch.relu(d - x @ torch.as_tensor(n, dtype=x.dtype)).mean()
+
+
 def _key(model, cfg: RefineConfig) -> str:
     """A fingerprint of what the refinement depends on: the tracked fields, the Gaussians and the settings."""
     settings = asdict(cfg)
     if not cfg.stretch:  # rigid tracks keep the key they had before the stretch existed
         del settings["stretch"], settings["lr_stretch"]
+    if not cfg.ground:  # and so do tracks without the ground's term
+        del settings["ground"]
     h = hashlib.sha256(repr(sorted(settings.items())).encode())
     for name, t in sorted(model.kinematic_fields.state_dict().items()):
         h.update(name.encode())
@@ -144,8 +177,9 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
     from causalgs.model.fit import tracking_loss
 
     cfg = cfg or RefineConfig()
-    if cfg.iterations < 0 or cfg.views < 1 or cfg.score_views < 1:
-        raise CausalGSError(f"refinement settings {cfg}: iterations must be ≥ 0, views and score_views ≥ 1")
+    if cfg.iterations < 0 or cfg.views < 1 or cfg.score_views < 1 or not cfg.ground >= 0:
+        raise CausalGSError(f"refinement settings {cfg}: iterations and ground must be ≥ 0, views and score_views "
+                            "≥ 1")  # fmt: skip
     n = timeline.train_frames
     kc = model.config.kinematic
     g = model.gaussians
@@ -154,6 +188,7 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
     if len(idx) == 0:
         raise CausalGSError("the fit has no moving Gaussians: there is no motion to refine")
     bg = tuple(float(v) for v in data.background)
+    plane = ground_plane(model) if cfg.ground else None
     train = timeline.by_frame(data.train)
     val = timeline.by_frame(data.val)
     scored_on = "val" if all(val.get(k) for k in range(n)) else "train"
@@ -207,6 +242,8 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
                     img, _, _ = g.render(fr.camera, bg, means=means, covs=covs)
                     loss = loss + tracking_loss(img, torch.from_numpy(fr.image).to(dtype), kc.lambda_dssim,
                                                 kc.blur) / len(pick)  # fmt: skip
+                if plane is not None:
+                    loss = loss + cfg.ground * below(means[idx], plane)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
