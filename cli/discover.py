@@ -178,10 +178,13 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
               help="Trajectory level: observe each body through its best rigid motion, as tracks from video do, and "
                    "discover through that lens: what rigid tracks hide (a wobble, a squash) without the errors of "
                    "tracking images.")
+@click.option("--lens", type=click.Choice(["auto", "rigid", "affine"]), default="auto", show_default=True,
+              help="Video level: the refined tracks' lens, as `causalgs discover --lens` (auto: the stretching tracks "
+                   "where held-out cameras ask for them).")
 @click.option("--level", type=click.Choice(["trajectory", "video"]), default="trajectory", show_default=True,
               help="trajectory: simulated particle tracks with noise (minutes a case); video: a rendered video, a "
                    "fit and discovery on the run, end to end (about 20 minutes a flight case on 2 cores).")
-def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, jobs, rigid_tracks, level):
+def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, jobs, rigid_tracks, lens, level):
     """Reproduce the hidden-effect table: for every effect of the catalogue, a tossed block simulated with it and
     a model without it; negative controls; an effect outside the catalogue.
 
@@ -201,7 +204,9 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
     from causalgs.discover.search import DiscoverConfig
 
     if level == "video" and rigid_tracks:
-        raise CausalGSError("--rigid-tracks is for --level trajectory: video tracks are rigid already")
+        raise CausalGSError("--rigid-tracks is for --level trajectory: video tracks have a lens of their own (--lens)")
+    if level == "trajectory" and lens != "auto":
+        raise CausalGSError("--lens is for --level video: trajectory tracks are the simulator's own (--rigid-tracks)")
     if level == "video":
         from causalgs.discover.video_table import CASES, VideoTableConfig, run_video_table
     else:
@@ -218,7 +223,7 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
     if level == "video":
         vcfg = VideoTableConfig(seeds=seeds, first_seed=first_seed, only=names, control_seeds=control_seeds,
                                 jobs=jobs, discover=DiscoverConfig(res=res or 0),
-                                truth_grid=not (run_grid or res))  # fmt: skip
+                                truth_grid=not (run_grid or res), lens=lens)  # fmt: skip
         rows = run_video_table(out, vcfg, log=_console_log())
     else:
         res = res or 20

@@ -115,6 +115,7 @@ class VideoTableConfig:
     # ... or on the truth's own grid (its box and ``reference_res`` cells), as the trajectory table does: see the
     # module docstring. It replaces ``discover.res``.
     truth_grid: bool = True
+    lens: str = "auto"  # the refined tracks' lens (``causalgs discover --lens``): auto, rigid or affine
 
 
 def plan(cfg: VideoTableConfig) -> list[tuple[str, int]]:
@@ -134,13 +135,14 @@ def _run_fit(*args, **kwargs):
     return fit(*args, **kwargs)
 
 
-def _discover(*args, grid=None, **kwargs) -> tuple[dict, object, object]:
+def _discover(*args, grid=None, lens: str = "auto", **kwargs) -> tuple[dict, object, object]:
     """(report, the run's observation, its kinematic fit's observation) of ``causalgs discover`` on a run: the
     measurement discovery used (the refined tracks) and the one it would have used without the refinement, both for
-    the table's tracking error. ``grid``: (lo, hi, res), the box and cells discovery simulates on (None: the run's)."""
+    the table's tracking error. ``grid``: (lo, hi, res), the box and cells discovery simulates on (None: the run's);
+    ``lens``: the refined tracks' lens (:func:`causalgs.discover.run.load_source`)."""
     from causalgs.discover.run import load_source, run_discovery
 
-    obs, base = load_source(args[0])  # read once, for discovery and for the table's tracking error
+    obs, base = load_source(args[0], lens=lens)  # read once, for discovery and for the table's tracking error
     plain, _ = load_source(args[0], refine=False)
     if grid is not None:
         obs.lo, obs.hi = (tuple(float(v) for v in b) for b in grid[:2])
@@ -243,7 +245,8 @@ def run_one(case_name: str, seed: int, cfg: VideoTableConfig, out: Path, log=Non
         fit_seconds = _fit(case, seed, cfg, data, run, log)
         log(f"{case.name}, seed {seed}: discovering")
         grid = truth_grid(case, seed, cfg) if cfg.truth_grid else None
-        report, obs, plain = _discover(run, disc, config=cfg.discover, log=log, resume=True, grid=grid)
+        report, obs, plain = _discover(run, disc, config=cfg.discover, log=log, resume=True, grid=grid,
+                                       lens=cfg.lens)  # fmt: skip
     except CausalGSError as e:  # one failing case is a row of the table, not the end of it
         return {**_failed(case, seed, str(e), time.monotonic() - t0), "fit_seconds": None}
     report["truth_error"] = prediction_error(disc, data)

@@ -135,6 +135,7 @@ def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_
         (["discover", str(tmp_path / "obs.npz"), "--out", str(out), "--res", "3"], "--res 3"),
         (["discover-table", "--out", str(out), "--only", "nonsense"], "unknown case"),
         (["discover-table", "--out", str(out), "--level", "video", "--rigid-tracks"], "is for --level trajectory"),
+        (["discover-table", "--out", str(out), "--lens", "affine"], "is for --level video"),
     ]
     for argv, msg in bad:
         r = CliRunner().invoke(cli, argv)
