@@ -69,7 +69,9 @@ def _starts(text: str) -> tuple[float, ...]:
                    "is compared through. 'rigid': a rotation and a shift; 'affine': also a stretch (a body squashed "
                    "for good, as by plastic flow); 'auto': both are refined (RUN/tracks.npz, "
                    "RUN/tracks-affine.npz), and the stretching tracks are taken only where they match held-out "
-                   "cameras at least 1 dB better on a quarter of the frames.")  # fmt: skip
+                   "cameras better once the bodies have come to their final shape: over the last quarter of the "
+                   "observed frames, by a median 0.25 dB or more and on three quarters of them, as for a body "
+                   "deformed for good.")  # fmt: skip
 @click.option("--weigh/--no-weigh", default=False, show_default=True,
               help="Through a run's rigid lens: weigh every residual by σ/√(σ² + e²), e the base fit's departure "
                    "from rigid motion at that frame and body (where rigid tracks cannot follow a deforming body, "

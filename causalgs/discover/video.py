@@ -149,6 +149,7 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = C
         if choice is not None:
             base["tracking"]["lens_choice"] = choice["text"]
             base["tracking"]["lens_gain_db"] = choice["gain_db"]
+            base["tracking"]["lens_agree"] = choice["agree"]
     return obs, base
 
 
@@ -164,28 +165,39 @@ def lens_refinement(refine: RefineConfig, kind: str) -> RefineConfig:
     return replace(refine, stretch=True, ground=refine.ground or STRETCH_GROUND)
 
 
-AFFINE_GAIN_DB = 1.0  # held-out PSNR the stretching tracks must gain over the rigid ones on a quarter of the frames
+AFFINE_GAIN_DB = 0.25  # median held-out PSNR the stretching tracks must gain over the rigid ones at the window's end
+AFFINE_AGREE = 0.75  # ... on at least this share of those frames
 
 
-def choose_lens(rigid, affine, gain_db: float = AFFINE_GAIN_DB, share: float = 0.25) -> dict:
+def choose_lens(rigid, affine, gain_db: float = AFFINE_GAIN_DB, share: float = 0.25,
+                agree: float = AFFINE_AGREE) -> dict:  # fmt: skip
     """Which tracks measure a run's motion: the rigid ones, unless the tracks that also stretch each pattern match
-    the held-out cameras better by ``gain_db`` or more (PSNR) on at least ``share`` of the frames, as where a body
-    is squashed for good. Both are scored on cameras neither fitted, so the stretch's six more numbers per pattern
-    and frame are taken only where the images show them. Returns ``{"lens", "gain_db", "text"}``, ``gain_db`` the
-    gain at the ``1 − share`` quantile over the frames."""
+    the held-out cameras better where the bodies have come to their final shape, the last ``share`` of the observed
+    frames (at least three): better on at least ``agree`` of them, by a median of ``gain_db`` or more (PSNR). That
+    is a body deformed for good; a wobble, an elastic impact or a flight is not. Both are scored on cameras neither
+    fitted, so the stretch's six more numbers per pattern and frame are taken only where the images show them.
+
+    Measured (seed 0, 144 frames, each frame scored on two held-out cameras): on the dent (5 kPa) the stretching
+    tracks gained a median 0.57 dB over the last 27 frames and were better on all of them; on the elastic landing
+    control, −0.03 dB, better on 41%. Over all the frames the two are alike (+0.55 and +0.48 dB at the upper
+    quartile), since the stretch gains at an elastic impact and loses a little in flight.
+
+    Returns ``{"lens", "gain_db", "agree", "text"}``: the median gain over those frames and the share of them
+    where the stretching tracks were better."""
     ok = np.isfinite(rigid.psnr_after) & np.isfinite(affine.psnr_after)
     if not ok.any():
-        return {"lens": "rigid", "gain_db": 0.0, "text": "No frame had cameras to compare rigid and stretching "
-                "tracks on; the tracks are rigid."}  # fmt: skip
-    gain = affine.psnr_after[ok] - rigid.psnr_after[ok]
-    q = float(np.quantile(gain, 1.0 - share))
+        return {"lens": "rigid", "gain_db": 0.0, "agree": 0.0, "text": "No frame had cameras to compare rigid and "
+                "stretching tracks on; the tracks are rigid."}  # fmt: skip
+    gain = (affine.psnr_after - rigid.psnr_after)[ok]
+    last = gain[-max(3, int(np.ceil(share * len(gain)))) :]
+    med, better = float(np.median(last)), float(np.mean(last > 0))
     med_r, med_a = float(np.median(rigid.psnr_after[ok])), float(np.median(affine.psnr_after[ok]))
-    kind = "affine" if q >= gain_db else "rigid"
+    kind = "affine" if med >= gain_db and better >= agree else "rigid"
     text = (f"Tracks that also stretch each pattern matched the held-out cameras at a median {med_a:.1f} dB against "
-            f"{med_r:.1f} dB for rigid ones, and gained {q:+.2f} dB or more on {share:.0%} of the frames "
-            f"({'at least' if kind == 'affine' else 'below'} the {gain_db:.1f} dB asked): the tracks are "
-            f"{'affine' if kind == 'affine' else 'rigid'}.")  # fmt: skip
-    return {"lens": kind, "gain_db": q, "text": text}
+            f"{med_r:.1f} dB for rigid ones. Over the last {len(last)} frames they gained a median {med:+.2f} dB "
+            f"and were better on {better:.0%} of them ({gain_db:.2f} dB on {agree:.0%} asked, as where a body is "
+            f"deformed for good): the tracks are {kind}.")  # fmt: skip
+    return {"lens": kind, "gain_db": med, "agree": better, "text": text}
 
 
 def image_residuals(run_dir, obs: Observation, traj: dict, out_png, *, views: int = 4) -> dict | None:

@@ -653,7 +653,7 @@ def test_refinement_finds_a_displacement_the_velocity_field_missed(fitted, tmp_p
     import shutil
     import types
 
-    from causalgs.discover.video import observation_from_run, refined_quality
+    from causalgs.discover.video import AFFINE_AGREE, AFFINE_GAIN_DB, observation_from_run, refined_quality
     from causalgs.model.fit import load_model
     from causalgs.model.refine import RefineConfig, cached_tracks, refine_tracks
 
@@ -722,7 +722,8 @@ def test_refinement_finds_a_displacement_the_velocity_field_missed(fitted, tmp_p
     assert auto_model["tracking"]["lens_choice"] and np.isfinite(auto_model["tracking"]["lens_gain_db"])
     affine, _ = observation_from_run(run, refine=quick, lens_kind="affine")
     assert affine.lens_kind == "affine" and np.allclose(affine.x[0], obs.x[0])
-    picked = affine if auto_model["tracking"]["lens_gain_db"] >= 1.0 else obs
+    tr = auto_model["tracking"]
+    picked = affine if tr["lens_gain_db"] >= AFFINE_GAIN_DB and tr["lens_agree"] >= AFFINE_AGREE else obs
     assert auto.lens_kind == picked.lens_kind and np.array_equal(auto.x, picked.x)
     with pytest.raises(CausalGSError, match="lens 'soft'"):
         observation_from_run(run, refine=quick, lens_kind="soft")
@@ -846,12 +847,17 @@ def test_the_lens_is_affine_only_where_held_out_cameras_ask_for_it():
                       "val", "k", stretch)  # fmt: skip
 
     rigid = tracks([32.0] * 6 + [22.0] * 6, False)
-    squashed = tracks([32.1] * 6 + [25.0] * 6, True)
-    wobble = tracks([32.2] * 6 + [22.3] * 5 + [28.0], True)  # one frame much better: not a quarter of them
-    worse = tracks([31.0] * 6 + [21.0] * 6, True)
+    squashed = tracks([31.8] * 6 + [25.0] * 6, True)  # a body squashed for good: better to the end
     got = choose_lens(rigid, squashed)
-    assert got["lens"] == "affine" and got["gain_db"] == pytest.approx(3.0) and "affine" in got["text"]
-    assert choose_lens(rigid, wobble)["lens"] == "rigid"
+    assert got["lens"] == "affine" and got["gain_db"] == pytest.approx(3.0) and got["agree"] == 1.0
+    assert "affine" in got["text"]
+    impact = tracks([32.0] * 4 + [28.0] * 3 + [22.1, 21.8, 22.2, 21.9, 22.3], True)  # better at the impact only
+    assert choose_lens(rigid, impact)["lens"] == "rigid"
+    one = tracks([32.0] * 6 + [22.0] * 5 + [28.0], True)  # one final frame much better: not three quarters
+    assert choose_lens(rigid, one)["lens"] == "rigid" and choose_lens(rigid, one)["agree"] == pytest.approx(1 / 3)
+    slight = tracks([32.0] * 6 + [22.1] * 6, True)  # better on every last frame, but by 0.1 dB
+    assert choose_lens(rigid, slight)["lens"] == "rigid"
+    worse = tracks([31.0] * 6 + [21.0] * 6, True)
     assert choose_lens(rigid, worse)["lens"] == "rigid"
     nan = tracks([float("nan")] * 12, True)
     assert choose_lens(rigid, nan)["lens"] == "rigid"
