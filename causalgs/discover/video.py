@@ -153,13 +153,13 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = C
     return obs, base
 
 
-STRETCH_GROUND = 10.0  # per metre: the stretching tracks' weight on their depth under the ground (RefineConfig.ground)
+STRETCH_GROUND = 10.0  # per metre: the stretching tracks' weight on their depth under the floor (RefineConfig.ground)
 
 
 def lens_refinement(refine: RefineConfig, kind: str) -> RefineConfig:
     """The refinement that makes the ``kind`` lens's tracks: ``refine`` rigid, or with a stretch per pattern and
-    (unless ``refine`` sets one) :data:`STRETCH_GROUND` on the depth under the run's ground, where no camera sees
-    a stretch grow."""
+    (unless ``refine`` sets one) :data:`STRETCH_GROUND` on the depth under the floor the cameras see
+    (:func:`causalgs.model.refine.visible_floor`), where no camera sees a stretch grow."""
     if kind != "affine":
         return replace(refine, stretch=False)
     return replace(refine, stretch=True, ground=refine.ground or STRETCH_GROUND)

@@ -79,9 +79,9 @@ class RefineConfig:
     # bodies that deform for good (see :func:`choose_lens`)
     stretch: bool = False
     lr_stretch: float = 1e-2  # per step, the stretch's log-strain S_k
-    # weight (per metre) of the mean depth of the moving Gaussians below the run's ground plane, added to each
-    # frame's image loss (0: none). No camera sees under an opaque floor, so nothing else stops a stretch from
-    # growing there (see the module docstring)
+    # weight (per metre) of the mean depth of the moving Gaussians under the floor the cameras see
+    # (:func:`visible_floor`), added to each frame's image loss (0: none). No camera sees under an opaque floor, so
+    # nothing else stops a stretch from growing there (see the module docstring)
     ground: float = 0.0
 
 
@@ -135,25 +135,21 @@ def corrected(A: torch.Tensor, b: torch.Tensor, c: torch.Tensor, r: torch.Tensor
     return Q @ A, (Q @ (b - c)[..., None])[..., 0] + c + d
 
 
-GROUNDS = ("ground", "floor", "ground_sticky")  # the effects that are a ground plane n·x = d
+def visible_floor(model) -> tuple[np.ndarray, float] | None:
+    """(n, height) of the floor the cameras see under the moving Gaussians, the plane n·x = height with n = +z: the
+    densest level of the static Gaussians at or below where the moving ones start
+    (:func:`causalgs.model.scene.floor_level`: a floor is a plane full of Gaussians). None where no level stands
+    out. This, not the physics' learned ground, is what hides a stretch: a grid's contact plane may sit a cell
+    lower or higher than the surface it stands for (on the dent, the learned plane was 1.2 cm under this one)."""
+    from causalgs.model.scene import floor_level
 
-
-def ground_plane(model) -> tuple[np.ndarray, float] | None:
-    """(unit normal n [3], offset d) of the fitted ground plane n·x = d (the material is where n·x ≥ d): the first
-    ground effect of the run's physics at its learned values; None without one."""
-    from causalgs.sim.effects import Effects
-
-    eff = Effects.from_spec(model.config.physics.effects)
-    flat = model.effect_params.detach().double().numpy()
-    if len(flat) == len(eff.param_names()):  # the learned values (before the physical stage: the config's)
-        eff.set_flat(flat)
-    for name in eff.names():
-        if name in GROUNDS:
-            n = eff.get(name, "n")
-            norm = float(np.linalg.norm(n))
-            if norm > 0:
-                return n / norm, float(eff.get(name, "d")[0]) / norm
-    return None
+    dyn = model.dynamic
+    if not bool(dyn.any()) or bool(dyn.all()):
+        return None
+    z = model.gaussians.means.detach().double()[:, 2]
+    size = float((model.hi - model.lo).max())
+    level = floor_level(z[~dyn], float(torch.quantile(z[dyn], 0.001)), size)
+    return None if level is None else (np.array([0.0, 0.0, 1.0]), level)
 
 
 def below(x: torch.Tensor, plane: tuple[np.ndarray, float]) -> torch.Tensor:
@@ -169,6 +165,9 @@ def _key(model, cfg: RefineConfig) -> str:
         del settings["stretch"], settings["lr_stretch"]
     if not cfg.ground:  # and so do tracks without the ground's term
         del settings["ground"]
+    if cfg.ground:  # and the floor it keeps them above
+        plane = visible_floor(model)
+        settings["floor"] = None if plane is None else (tuple(float(v) for v in plane[0]), round(plane[1], 9))
     h = hashlib.sha256(repr(sorted(settings.items())).encode())
     for name, t in sorted(model.kinematic_fields.state_dict().items()):
         h.update(name.encode())
@@ -178,9 +177,10 @@ def _key(model, cfg: RefineConfig) -> str:
     return h.hexdigest()[:16]
 
 
-def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progress=None) -> Tracks:
+def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progress=None, floor=None) -> Tracks:
     """The refinement described in the module docstring, over every observed frame of a fitted ``model`` with its
-    dataset ``data`` and ``timeline``; ``progress(done, total)`` after every frame."""
+    dataset ``data`` and ``timeline``; ``progress(done, total)`` after every frame. ``floor``: the plane (n, d)
+    that ``cfg.ground`` keeps the moving Gaussians above (None: :func:`visible_floor`)."""
     from causalgs.metrics.pixel import psnr
     from causalgs.model.fit import tracking_loss
 
@@ -196,7 +196,7 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
     if len(idx) == 0:
         raise CausalGSError("the fit has no moving Gaussians: there is no motion to refine")
     bg = tuple(float(v) for v in data.background)
-    plane = ground_plane(model) if cfg.ground else None
+    plane = (floor if floor is not None else visible_floor(model)) if cfg.ground else None
     train = timeline.by_frame(data.train)
     val = timeline.by_frame(data.val)
     scored_on = "val" if all(val.get(k) for k in range(n)) else "train"

@@ -795,46 +795,55 @@ def test_stretching_tracks_follow_a_squash_that_rigid_tracks_cannot(fitted, tmp_
 
 def test_the_ground_term_keeps_stretching_tracks_out_of_the_ground(fitted, tmp_path):
     """No camera sees under an opaque floor, so a stretch can grow there unseen (on a plastic landing the stretching
-    tracks reached 25 cm under it). ``RefineConfig.ground`` adds their mean depth under the run's fitted ground
-    plane to each frame's image loss. Here the run's ground is raised to a third of the moving Gaussians' height at
-    the last observed frame, with images of the fitted motion itself: with the term, the stretching tracks end far
-    less deep under it than without; the term's pieces against plain references, and the lens that takes it."""
+    tracks reached 25 cm under it). ``RefineConfig.ground`` adds their mean depth under the floor to each frame's
+    image loss. Here the floor is put a third of the way up the moving Gaussians at the last observed frame, with
+    images of the fitted motion itself: with the term, the stretching tracks end far less deep under it than
+    without. The floor the cameras see is the static Gaussians' plane under the bodies, the depth a plain mean."""
     import dataclasses
-    import shutil
+    import types
 
     from causalgs.discover.video import STRETCH_GROUND, lens_refinement
     from causalgs.model.fit import load_model
-    from causalgs.model.refine import RefineConfig, _key, below, ground_plane, refine_tracks
-    from causalgs.sim.effects import Effects
+    from causalgs.model.refine import RefineConfig, _key, below, refine_tracks, visible_floor
 
-    run = tmp_path / "run"
-    shutil.copytree(fitted, run)
-    m, data, tl = load_model(run)
+    m, data, tl = load_model(fitted)
     n = tl.train_frames
     idx = torch.nonzero(m.dynamic).flatten()
-    names = Effects.from_spec(m.config.physics.effects).param_names()
     with torch.no_grad():
         x0 = m.gaussians.means[idx].detach().double()
         h = m.mixtures(m.gaussians.means[idx].detach()).double()
         z = m.kinematic(n - 1, frames=[n - 1])[0][0][idx, 2].double()
-        cut = float(z.min() + (z.max() - z.min()) / 3)
-        for i, v in enumerate((0.0, 0.0, 2.0, 2 * cut)):  # an unnormalised normal: the plane is n·x = d all the same
-            m.effect_params[names.index(f"ground.n[{i}]" if i < 3 else "ground.d")] = v
-    nrm, d = ground_plane(m)
-    assert np.allclose(nrm, (0, 0, 1)) and d == pytest.approx(cut)
+    cut = float(z.min() + (z.max() - z.min()) / 3)
+    plane = (np.array([0.0, 0.0, 1.0]), cut)
     pts = torch.tensor([[0.0, 0.0, cut - 0.02], [0.0, 0.0, cut + 0.05], [1.0, 2.0, cut - 0.01]], dtype=torch.float64)
-    assert float(below(pts, (nrm, d))) == pytest.approx((0.02 + 0.0 + 0.01) / 3)
+    assert float(below(pts, plane)) == pytest.approx((0.02 + 0.0 + 0.01) / 3)
     cfg = RefineConfig(iterations=60, views=2, lr_shift=2e-3, stretch=True)
     depth = {}
     for w in (0.0, 100.0):
-        tr = refine_tracks(m, data, tl, dataclasses.replace(cfg, ground=w))
-        depth[w] = float(below(tr.positions(h, x0, [n - 1])[0], (nrm, d)))
+        tr = refine_tracks(m, data, tl, dataclasses.replace(cfg, ground=w), floor=plane)
+        depth[w] = float(below(tr.positions(h, x0, [n - 1])[0], plane))
     assert depth[100.0] < 0.5 * depth[0.0], depth
     assert _key(m, dataclasses.replace(cfg, ground=1.0)) != _key(m, cfg)  # tracks with the term are kept apart
     assert lens_refinement(RefineConfig(), "affine") == RefineConfig(stretch=True, ground=STRETCH_GROUND)
     assert lens_refinement(RefineConfig(stretch=True, ground=3.0), "rigid") == RefineConfig(ground=3.0)
     with pytest.raises(CausalGSError, match="ground must be"):
         refine_tracks(m, data, tl, dataclasses.replace(cfg, ground=float("nan")))
+    # the visible floor: a plane full of static Gaussians at z = 0.02 under a body; none without such a plane
+    rng = np.random.default_rng(0)
+    floor = np.c_[rng.uniform(-0.5, 0.5, (400, 2)), 0.02 + rng.normal(0, 0.001, 400)]
+    body = rng.uniform((-0.1, -0.1, 0.05), (0.1, 0.1, 0.2), (300, 3))
+    room = rng.uniform((-0.5, -0.5, 0.0), (0.5, 0.5, 1.0), (60, 3))  # static Gaussians spread over the scene
+
+    def scene(*parts, moving):
+        means = torch.from_numpy(np.concatenate(parts))
+        dyn = torch.zeros(len(means), dtype=torch.bool)
+        dyn[-moving:] = True
+        return types.SimpleNamespace(gaussians=types.SimpleNamespace(means=means), dynamic=dyn,
+                                     lo=torch.tensor([-0.5, -0.5, 0.0]), hi=torch.tensor([0.5, 0.5, 1.0]))  # fmt: skip
+
+    nrm, level = visible_floor(scene(room, floor, body, moving=len(body)))
+    assert np.array_equal(nrm, (0, 0, 1)) and level == pytest.approx(0.02, abs=0.002)
+    assert visible_floor(scene(room, body, moving=len(body))) is None
 
 
 def test_the_lens_is_affine_only_where_held_out_cameras_ask_for_it():
