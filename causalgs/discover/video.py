@@ -159,7 +159,9 @@ STRETCH_GROUND = 10.0  # per metre: the stretching tracks' weight on their depth
 def lens_refinement(refine: RefineConfig, kind: str) -> RefineConfig:
     """The refinement that makes the ``kind`` lens's tracks: ``refine`` rigid, or with a stretch per pattern and
     (unless ``refine`` sets one) :data:`STRETCH_GROUND` on the depth under the floor the cameras see
-    (:func:`causalgs.model.refine.visible_floor`), where no camera sees a stretch grow."""
+    (:func:`causalgs.model.refine.visible_floor`), where no camera sees a stretch grow. The rigid tracks go without
+    it: a rigid block cannot flatten, and kept out of the floor it rides high. On the dent the term took the rigid
+    tracks from 6.37 to 7.49 mm RMS from the truth, and their held-out PSNR from 28.1 to 27.0 dB."""
     if kind != "affine":
         return replace(refine, stretch=False)
     return replace(refine, stretch=True, ground=refine.ground or STRETCH_GROUND)
