@@ -416,27 +416,15 @@ def test_extent_draws_move_each_face_within_the_resolution():
 def _flight_and_bounce(vol_spread: float = 0.0, **obs_kw) -> dict:
     """A cube seen through a one-pattern lens, thrown in free flight and onto the ground (16 cells, 60 fps): the
     model's own motion is the measurement. {name: (state at the true parameters, model, observation)}."""
-    from causalgs import _ti
     from causalgs.discover.calibrate import Fit
-    from causalgs.discover.model import PhysicsModel
     from causalgs.discover.search import _state
 
-    _ti.init("cpu", "float32")
     out = {}
     for name, centre, v in (("flight", (0.0, 0.0, 0.5), (0.4, -0.2, 1.0)), ("bounce", (0.0, 0.0, 0.1), (0.4, 0, -1.0))):
-        x0 = _cube(n=4, centre=centre)
-        t = np.arange(14) / 60.0
-        vol = np.linspace(1.0, 1.0 + vol_spread, len(x0)) * 0.12**3 / len(x0)
-        obs = Observation(times=t, x=np.repeat(x0[None], len(t), 0), vol=vol, body=np.zeros(len(x0)), observed=10,
-                          lo=(-0.6, -0.6, -0.1), hi=(0.6, 0.6, 1.1), names=["cube"], mix=np.ones((len(x0), 1)),
-                          **obs_kw)  # fmt: skip
-        m = PhysicsModel(obs, "gravity;ground:mu=0.3;walls", res=16)
-        th = m.initial(E=3e4)
-        for i, k in enumerate(m.knobs):
-            if k.kind == "u":
-                th[i] = v[k.index]
-        with torch.no_grad():
-            obs.x[1:] = m.rollout(th).numpy()
+        n = len(_cube(n=4))
+        vol = np.linspace(1.0, 1.0 + vol_spread, n) * 0.12**3 / n
+        obs, m, th = _thrown_cube("gravity;ground:mu=0.3;walls", centre, v, 10, frames=14, vol=vol,
+                                  mix=np.ones((n, 1)), **obs_kw)  # fmt: skip
         out[name] = (_state(m, Fit(th, 0.0, 0, 3e4)), m, obs)
     return out
 
@@ -733,18 +721,19 @@ def test_a_parameter_the_data_does_not_move_is_not_significant():
     assert z_score(0.0, 0.0, 0.0) == 0.0
 
 
-def _thrown_cube(spec: str, centre, velocity, observed: int):
+def _thrown_cube(spec: str, centre, velocity, observed: int, frames: int = 16, vol=None, **obs_kw):
     """(observation, truth model, truth θ): a cube of 64 points thrown at ``velocity`` from ``centre`` and simulated
-    with the effects ``spec`` for 16 frames at 60 fps on 16 cells; the measurement is that rollout."""
+    with the effects ``spec`` for ``frames`` frames at 60 fps on 16 cells, its points' volumes ``vol`` (None: equal
+    shares of the cube's); the measurement is that rollout. ``obs_kw``: more fields of the observation."""
     from causalgs import _ti
     from causalgs.discover.model import PhysicsModel
 
     _ti.init("cpu", "float32")
     x0 = _cube(n=4, centre=centre)
-    t = np.arange(16) / 60.0
-    obs = Observation(times=t, x=np.repeat(x0[None], len(t), 0), vol=np.full(len(x0), 0.12**3 / len(x0)),
-                      body=np.zeros(len(x0)), observed=observed, lo=(-0.6, -0.6, -0.1), hi=(0.6, 0.6, 1.1),
-                      names=["cube"])  # fmt: skip
+    t = np.arange(frames) / 60.0
+    vol = np.full(len(x0), 0.12**3 / len(x0)) if vol is None else vol
+    obs = Observation(times=t, x=np.repeat(x0[None], len(t), 0), vol=vol, body=np.zeros(len(x0)), observed=observed,
+                      lo=(-0.6, -0.6, -0.1), hi=(0.6, 0.6, 1.1), names=["cube"], **obs_kw)  # fmt: skip
     truth = PhysicsModel(obs, spec, res=16)
     th = truth.initial(E=3e4)
     for i, k in enumerate(truth.knobs):
