@@ -166,7 +166,7 @@ def _key(model, cfg: RefineConfig) -> str:
         del settings["stretch"], settings["lr_stretch"]
     if not cfg.ground:  # and so do tracks without the ground's term
         del settings["ground"]
-    if cfg.ground:  # and the floor it keeps them above
+    else:  # the floor it keeps them above
         plane = visible_floor(model)
         settings["floor"] = None if plane is None else (tuple(float(v) for v in plane[0]), round(plane[1], 9))
     h = hashlib.sha256(repr(sorted(settings.items())).encode())
