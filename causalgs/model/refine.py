@@ -159,9 +159,14 @@ def below(x: torch.Tensor, plane: tuple[np.ndarray, float]) -> torch.Tensor:
     return torch.relu(d - x @ torch.as_tensor(n, dtype=x.dtype)).mean()
 
 
-def _key(model, cfg: RefineConfig) -> str:
-    """A fingerprint of what the refinement depends on: the tracked fields, the Gaussians and the settings."""
+def _key(model, cfg: RefineConfig, half: int | None = None, frames: int | None = None) -> str:
+    """A fingerprint of what the refinement depends on: the tracked fields, the Gaussians, the settings, the
+    cameras (all of them, or a half) and the frames (all of them, or the first so many)."""
     settings = asdict(cfg)
+    if half is not None:
+        settings["half"] = half
+    if frames is not None:
+        settings["frames"] = int(frames)
     if not cfg.stretch:  # rigid tracks keep the key they had before the stretch existed
         del settings["stretch"], settings["lr_stretch"]
     if not cfg.ground:  # and so do tracks without the ground's term
@@ -178,10 +183,24 @@ def _key(model, cfg: RefineConfig) -> str:
     return h.hexdigest()[:16]
 
 
-def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progress=None, floor=None) -> Tracks:
+def camera_half(frames: list, half: int, views=None) -> list:
+    """The images of ``frames`` (one time's) whose cameras are in ``half`` (0 or 1) of the cameras: those at even
+    or odd places among ``views``, every view number of the dataset (default: the views of ``frames``), so that
+    a camera falls in the same half at every time even where a time lacks some cameras. Images without a view number
+    are split by their order. The two halves share no camera."""
+    place = {v: i for i, v in enumerate(sorted({f.view for f in frames if f.view is not None} if views is None
+                                               else set(views)))}  # fmt: skip
+    loose = [f for f in frames if f.view is None]
+    return [f for f in frames if f.view is not None and place[f.view] % 2 == half] + loose[half::2]
+
+
+def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progress=None, floor=None,
+                  half: int | None = None, frames: int | None = None) -> Tracks:  # fmt: skip
     """The refinement described in the module docstring, over every observed frame of a fitted ``model`` with its
     dataset ``data`` and ``timeline``; ``progress(done, total)`` after every frame. ``floor``: the plane (n, d)
-    that ``cfg.ground`` keeps the moving Gaussians above (None: :func:`visible_floor`)."""
+    that ``cfg.ground`` keeps the moving Gaussians above (None: :func:`visible_floor`). ``half`` 0 or 1: fitted to
+    that half of each frame's training cameras only (:func:`camera_half`; None: all of them), for
+    :func:`split_noise`. ``frames``: only the first so many observed frames (None: all)."""
     from causalgs.metrics.pixel import psnr
     from causalgs.model.fit import tracking_loss
 
@@ -189,7 +208,7 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
     if cfg.iterations < 0 or cfg.views < 1 or cfg.score_views < 1 or not cfg.ground >= 0:
         raise CausalGSError(f"refinement settings {cfg}: iterations and ground must be ≥ 0, views and score_views "
                             "≥ 1")  # fmt: skip
-    n = timeline.train_frames
+    n = timeline.train_frames if frames is None else max(1, min(int(frames), timeline.train_frames))
     kc = model.config.kinematic
     g = model.gaussians
     dtype = g.means.dtype
@@ -198,7 +217,12 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
         raise CausalGSError("the fit has no moving Gaussians: there is no motion to refine")
     bg = tuple(float(v) for v in data.background)
     plane = (floor if floor is not None else visible_floor(model)) if cfg.ground else None
+    if half not in (None, 0, 1):
+        raise CausalGSError(f"camera half {half} must be 0 or 1")
     train = timeline.by_frame(data.train)
+    if half is not None:
+        views = {f.view for f in data.train if f.view is not None}
+        train = {k: camera_half(v, half, views) for k, v in train.items()}
     val = timeline.by_frame(data.val)
     scored_on = "val" if all(val.get(k) for k in range(n)) else "train"
     scoring = val if scored_on == "val" else train
@@ -236,18 +260,18 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
     A_out, b_out = [], []
     before, after = [], []
     for k in range(n):
-        frames = train.get(k, [])
-        judge = scoring[k][: cfg.score_views] if scoring.get(k) else frames[: cfg.score_views]
+        images = train.get(k, [])
+        judge = scoring[k][: cfg.score_views] if scoring.get(k) else images[: cfg.score_views]
         with torch.no_grad():
             c = w.T @ place(h, x0, R[k], t[k])  # [K, 3]
-        if k > 0 and frames and cfg.iterations > 0:
+        if k > 0 and images and cfg.iterations > 0:
             opt = torch.optim.Adam([{"params": [v], "lr": lr} for v, lr in steps])
             for _ in range(cfg.iterations):
-                pick = rng.choice(len(frames), size=min(cfg.views, len(frames)), replace=False)
+                pick = rng.choice(len(images), size=min(cfg.views, len(images)), replace=False)
                 means, covs = state(*corrected(R[k], t[k], c, r, d, s))
                 loss = 0.0
                 for i in pick:
-                    fr = frames[int(i)]
+                    fr = images[int(i)]
                     img, _, _ = g.render(fr.camera, bg, means=means, covs=covs)
                     loss = loss + tracking_loss(img, torch.from_numpy(fr.image).to(dtype), kc.lambda_dssim,
                                                 kc.blur) / len(pick)  # fmt: skip
@@ -268,16 +292,19 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
         b_out.append(b_k.detach().double().numpy())
         if progress is not None:
             progress(k + 1, n)
-    return Tracks(np.stack(A_out), np.stack(b_out), np.array(before), np.array(after), scored_on, _key(model, cfg),
-                  cfg.stretch)
+    return Tracks(np.stack(A_out), np.stack(b_out), np.array(before), np.array(after), scored_on,
+                  _key(model, cfg, half, frames), cfg.stretch)
 
 
-def cached_tracks(run_dir, model, data, timeline, cfg: RefineConfig | None = None, progress=None) -> Tracks:
+def cached_tracks(run_dir, model, data, timeline, cfg: RefineConfig | None = None, progress=None,
+                  half: int | None = None, frames: int | None = None) -> Tracks:  # fmt: skip
     """The refined tracks of the run at ``run_dir``: read from its ``tracks.npz`` when that was made from this fit
-    with these settings, else computed by :func:`refine_tracks` and written there (atomically)."""
+    with these settings, else computed by :func:`refine_tracks` and written there (atomically). ``half``,
+    ``frames``: fitted to that half of the cameras over the first so many frames (``tracks-half0.npz``, ...)."""
     cfg = cfg or RefineConfig()
-    path = Path(run_dir) / ("tracks-affine.npz" if cfg.stretch else "tracks.npz")
-    key = _key(model, cfg)
+    name = "tracks-affine" if cfg.stretch else "tracks"
+    path = Path(run_dir) / (f"{name}.npz" if half is None else f"{name}-half{half}.npz")
+    key = _key(model, cfg, half, frames)
     if path.is_file():
         try:
             with np.load(path) as z:
@@ -286,7 +313,7 @@ def cached_tracks(run_dir, model, data, timeline, cfg: RefineConfig | None = Non
                                   cfg.stretch)
         except (OSError, KeyError, ValueError):
             pass  # unreadable or of another version: made again below
-    tr = refine_tracks(model, data, timeline, cfg, progress)
+    tr = refine_tracks(model, data, timeline, cfg, progress, half=half, frames=frames)
     write_npz(path, A=tr.A, b=tr.b, psnr_before=tr.psnr_before, psnr_after=tr.psnr_after,
               scored_on=np.array(tr.scored_on), key=np.array(key))  # fmt: skip
     return tr

@@ -645,6 +645,33 @@ def test_refined_tracks_place_points_by_their_patterns_motion():
     assert torch.autograd.gradcheck(lambda s_: place(h, x0, *corrected(A, b, c, r.detach(), d.detach(), s_)), (s,))
 
 
+def test_camera_halves_share_no_camera_and_keep_each_camera_in_one_half():
+    """The halves of a time's images that split-half tracking fits separately: every image in exactly one half,
+    the halves alike in size, a camera in the same half at every time, whatever order its images come in and
+    whichever cameras a time lacks; images without a view number are split by their order."""
+    import types
+
+    from causalgs.model.refine import camera_half
+
+    def images(views):
+        return [types.SimpleNamespace(view=v) for v in views]
+
+    every = range(7)
+    seen = {}
+    for views in ([0, 1, 2, 3, 4, 5, 6], [6, 3, 0, 5, 1, 4, 2], [1, 2, 5, 6], [3]):
+        frames = images(views)
+        a, b = camera_half(frames, 0, every), camera_half(frames, 1, every)
+        assert sorted(f.view for f in a + b) == sorted(views) and not {f.view for f in a} & {f.view for f in b}
+        for h, part in ((0, a), (1, b)):
+            for f in part:
+                assert seen.setdefault(f.view, h) == h, f.view
+    assert seen == {v: v % 2 for v in every}
+    assert [f.view for f in camera_half(images([6, 3, 0, 5, 1, 4, 2]), 0)] == [6, 0, 4, 2]  # the frames' own views
+    assert [f.view for f in camera_half(images([10, 30, 20]), 1)] == [20]
+    plain = images([None] * 5)
+    assert camera_half(plain, 0) == plain[0::2] and camera_half(plain, 1) == plain[1::2]
+
+
 def test_refinement_finds_a_displacement_the_velocity_field_missed(fitted, tmp_path):
     """Images of the last observed frame with the moving Gaussians shifted 3 cm (and the other frames as they are):
     the refinement moves that frame's patterns by the shift, scores it better on its cameras, keeps the result in the
@@ -693,6 +720,23 @@ def test_refinement_finds_a_displacement_the_velocity_field_missed(fitted, tmp_p
     assert torch.allclose(got, shift.double(), atol=0.01), got  # within a centimetre of the 3 cm shift
     assert tr.psnr_after[-1] > tr.psnr_before[-1] + 1.0
     assert np.allclose(tr.A[0], np.eye(3)) and np.allclose(tr.b[0], 0.0) and tr.psnr_after[0] == tr.psnr_before[0]
+    # Split-half tracking: a half's refinement reads its own cameras' images only (blanking the others' changes
+    # nothing, blanking its own does), over the first frames asked for.
+    from causalgs.model.refine import camera_half
+
+    quick = RefineConfig(iterations=5, views=2, lr_shift=2e-3)
+    views = {f.view for f in shifted.train}
+    zero = set(camera_half(shifted.train, 0, views))
+    blank = types.SimpleNamespace(train=[dataclasses.replace(f, rgba=np.zeros_like(f.rgba)) if f in zero else f
+                                         for f in shifted.train], val=shifted.val, background=data.background)
+    halves = [refine_tracks(m, shifted, tl, quick, half=i) for i in (0, 1)]
+    # (the float32 renderer's parallel sums leave differences of ~10 µm, far below what an image moves)
+    assert np.abs(refine_tracks(m, blank, tl, quick, half=1).b - halves[1].b).max() < 1e-4  # 0.1 mm
+    assert np.abs(refine_tracks(m, blank, tl, quick, half=0).b - halves[0].b).max() > 1e-3
+    assert len({t.key for t in (*halves, refine_tracks(m, shifted, tl, quick))}) == 3
+    assert len(refine_tracks(m, shifted, tl, quick, half=0, frames=3).A) == 3
+    with pytest.raises(CausalGSError, match="camera half 2"):
+        refine_tracks(m, shifted, tl, cfg, half=2)
     # Kept in the run folder: the same fit and settings read it back; other settings make it again.
     quick = RefineConfig(iterations=2, views=1)
     first = cached_tracks(run, m, data, tl, quick)
@@ -730,6 +774,11 @@ def test_refinement_finds_a_displacement_the_velocity_field_missed(fitted, tmp_p
     calls = []
     other = cached_tracks(run, m, data, tl, RefineConfig(iterations=3, views=1), progress=lambda *a: calls.append(a))
     assert other.key != first.key and calls[-1] == (n, n)
+    halved = cached_tracks(run, m, data, tl, quick, half=1, frames=n - 2)
+    assert (run / "tracks-half1.npz").is_file() and len(halved.b) == n - 2 and halved.key != first.key
+    again = cached_tracks(run, m, data, tl, quick, half=1, frames=n - 2, progress=lambda *a: pytest.fail("again"))
+    assert np.array_equal(again.b, halved.b)
+    assert cached_tracks(run, m, data, tl, quick).key == first.key  # the whole tracks are still there
 
 
 def test_stretching_tracks_follow_a_squash_that_rigid_tracks_cannot(fitted, tmp_path):
