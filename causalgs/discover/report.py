@@ -323,6 +323,12 @@ def markdown(report: dict) -> str:
             L.append(f"A pixel spans {_mm(tr['pixel_m'])} at the bodies; the noise credited to the measurement, "
                      f"{_mm(report['noise'])} per coordinate, is at least a quarter of it (tracking errs smoothly "
                      "over many frames, which the jitter of the tracks does not show).")  # fmt: skip
+        if tr.get("split_sigma_m") is not None:
+            from causalgs.discover.video import SPLIT
+
+            L.append(f"Refined from each half of the cameras alone, the tracks disagreed by "
+                     f"{_mm(tr['split_sigma_m'])} per coordinate and half; the noise credited is at least "
+                     f"{SPLIT:g}× that (the halves share most of what tracks miss).")  # fmt: skip
         if tr.get("stray_particles"):
             L.append(f"{tr['stray_particles']} stray particle(s), apart from every body, were left out.")
         if tr["poor"]:

@@ -24,11 +24,13 @@ DEFAULT_SPEC = "gravity;ground:mu=0.3;walls"
 DEFAULT_LEARN = ("ground.mu",)
 
 
-def load_source(source, *, refine: bool = True, lens: str = "auto", progress=None) -> tuple[Observation, dict]:
+def load_source(source, *, refine: bool = True, lens: str = "auto", split: bool = True,
+                progress=None) -> tuple[Observation, dict]:  # fmt: skip
     """The observation at ``source`` and the base model it implies: an ``.npz`` observation file (no base: the
     defaults), or a fitted run folder (:func:`causalgs.discover.video.observation_from_run`: the run's physics; its
     tracked motion refined frame by frame unless ``refine`` is False, with the tracks' ``lens`` ("auto", "rigid" or
-    "affine"), ``progress(done, total)`` following it). Anything else is a one-line error."""
+    "affine"), refined from each half of the cameras too where ``split``, ``progress(done, total)`` following
+    it). Anything else is a one-line error."""
     source = Path(source)
     if source.is_dir():
         if not (source / "config.toml").is_file() or not (source / "checkpoint.pt").is_file():
@@ -36,17 +38,19 @@ def load_source(source, *, refine: bool = True, lens: str = "auto", progress=Non
                                 "run folder or an observation file (.npz)")  # fmt: skip
         from causalgs.discover.video import REFINE, observation_from_run
 
-        return observation_from_run(source, refine=REFINE if refine else None, lens_kind=lens, progress=progress)
+        return observation_from_run(source, refine=REFINE if refine else None, lens_kind=lens, split=split,
+                                    progress=progress)  # fmt: skip
     return load_observation(source), {}
 
 
 def run_discovery(source, out, *, spec: str | None = None, learn=None, candidates=None,
                   config: DiscoverConfig | None = None, log=None, obs: Observation | None = None,
                   base: dict | None = None, resume: bool = False, refine: bool = True, lens: str = "auto",
-                  progress=None) -> dict:  # fmt: skip
+                  split: bool = True, progress=None) -> dict:  # fmt: skip
     """Discover on ``source`` (or the given ``obs``) with the base model ``spec``/``learn`` (None: the run's own
     physics for a run folder, else :data:`DEFAULT_SPEC` / :data:`DEFAULT_LEARN`; ``obs`` with ``base``: what
-    :func:`load_source` returned for ``source``, already loaded; ``refine``, ``lens`` and ``progress`` as there);
+    :func:`load_source` returned for ``source``, already loaded; ``refine``, ``lens``, ``split`` and ``progress`` as
+    there);
     writes ``report.json``, ``report.md``, the plots, ``discover.json`` (the options) and ``progress.json`` (the
     finished calibrations) into ``out`` and returns the report. An ``out`` that already holds a discovery run is an
     error unless ``resume``, which continues it (same options and measurement) from its finished calibrations."""
@@ -55,7 +59,7 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
         Effects.from_spec(spec)  # a malformed spec is a one-line error before any work
     base = dict(base or {})
     if obs is None:
-        obs, base = load_source(source, refine=refine, lens=lens, progress=progress)
+        obs, base = load_source(source, refine=refine, lens=lens, split=split, progress=progress)
     spec = spec if spec is not None else base.get("spec", DEFAULT_SPEC)
     learn = tuple(learn) if learn is not None else tuple(base.get("learn", DEFAULT_LEARN))
     if cfg.res <= 0:  # the run's grid, else the default
@@ -66,12 +70,12 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
                "tracking": ("refined" if base.get("tracking", {}).get("refined") else "kinematic") if "run" in base
                else None,
                "lens": None if obs.mix is None else f"{obs.lens_kind} per motion pattern ({obs.mix.shape[1]})",
-               "shape_resolution_m": obs.shape_resolution,
+               "shape_resolution_m": obs.shape_resolution, "noise_m": obs.noise,
                "config": dataclasses.asdict(cfg), "box": [list(obs.lo), list(obs.hi)]}  # fmt: skip
     if (out / "report.json").is_file() and not (out / "progress.json").is_file() and not resume:
         raise CausalGSError(f"{out} already holds a discovery report: choose another --out")
-    key = fingerprint({**calibration_options(spec, learn, cfg), "box": [obs.lo, obs.hi]}, obs.x, obs.mix,
-                      obs.lens_kind)
+    key = fingerprint({**calibration_options(spec, learn, cfg), "box": [obs.lo, obs.hi], "noise": obs.noise}, obs.x,
+                      obs.mix, obs.lens_kind)  # fmt: skip
     journal = Journal(out / "progress.json", key, resume=resume)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "discover.json", options)

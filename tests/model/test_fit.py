@@ -746,7 +746,7 @@ def test_refinement_finds_a_displacement_the_velocity_field_missed(fitted, tmp_p
     # The discovery's measurement: the refined positions of the simulated particles (None: the kinematic fit's).
     from scipy.spatial import cKDTree
 
-    obs, base_model = observation_from_run(run, refine=quick, lens_kind="rigid",
+    obs, base_model = observation_from_run(run, refine=quick, lens_kind="rigid", split=False,
                                            progress=lambda *a: pytest.fail("refined again"))  # fmt: skip
     plain, plain_model = observation_from_run(run, refine=None)
     x0p = m.particles.x0.to(m.fields.centres.dtype)
@@ -757,13 +757,30 @@ def test_refinement_finds_a_displacement_the_velocity_field_missed(fitted, tmp_p
         dist, _ = cKDTree(quick_positions[k]).query(obs.x[k])
         assert dist.max() < 1e-6  # every measured point is a refined particle position
     assert not np.allclose(obs.x[-1], plain.x[-1], atol=1e-6) and want.shape[0] == n
-    assert base_model["tracking"] == refined_quality(first) and "tracking" not in plain_model
+    assert base_model["tracking"] == {**refined_quality(first), "split_sigma_m": None, "noise_m": obs.noise}
+    assert "tracking" not in plain_model
     # "auto" refines with a stretch too (following both in one progress) and keeps the rigid tracks unless held-out
     # cameras ask for the stretch; "affine" takes the stretching tracks whatever they score
     steps = []
     auto, auto_model = observation_from_run(run, refine=quick, progress=lambda *a: steps.append(a))
-    assert steps[-1] == (2 * n, 2 * n) and (run / "tracks-affine.npz").is_file()
+    total = 2 * n + 2 * auto.observed  # and the chosen tracks from each half of the cameras over the fit window
+    assert steps[-1] == (total, total) and (run / "tracks-affine.npz").is_file()
     assert auto_model["tracking"]["lens_choice"] and np.isfinite(auto_model["tracking"]["lens_gain_db"])
+    # the noise credited: at least SPLIT times the halves' disagreement (split_sigma), from the kept half tracks
+    from causalgs.discover.observation import noise_floor
+    from causalgs.discover.video import RESOLVE, SPLIT, lens_refinement, split_sigma, stray_particles
+
+    cfg_a = lens_refinement(quick, auto.lens_kind)
+    halves = [cached_tracks(run, m, data, tl, cfg_a, half=i, frames=auto.observed,
+                            progress=lambda *a: pytest.fail("refined again"))
+              for i in (0, 1)]  # fmt: skip
+    with torch.no_grad():
+        hx = m.mixtures(x0p).double()
+        xa, xb = (t.positions(hx, x0p.double()).numpy() for t in halves)
+    keep = ~stray_particles(xa[0], float(m.cell))
+    want_split = split_sigma(xa[:, keep], xb[:, keep])
+    assert auto_model["tracking"]["split_sigma_m"] == pytest.approx(want_split, rel=1e-9) and want_split > 0
+    assert auto.noise == pytest.approx(max(noise_floor(auto), RESOLVE * auto_model["pixel_m"], SPLIT * want_split))
     affine, _ = observation_from_run(run, refine=quick, lens_kind="affine")
     assert affine.lens_kind == "affine" and np.allclose(affine.x[0], obs.x[0])
     tr = auto_model["tracking"]
@@ -893,6 +910,30 @@ def test_the_ground_term_keeps_stretching_tracks_out_of_the_ground(fitted, tmp_p
     nrm, level = visible_floor(scene(room, floor, body, moving=len(body)))
     assert np.array_equal(nrm, (0, 0, 1)) and level == pytest.approx(0.02, abs=0.002)
     assert visible_floor(scene(room, body, moving=len(body))) is None
+
+
+def test_split_sigma_is_the_error_of_one_half_when_the_halves_err_independently():
+    """split_sigma against a plain loop, on two tracks of the same points with independent errors of σ = 2 mm per
+    coordinate (frame 0 the shared start): it reads σ; an error both share does not show; one frame gives 0."""
+    from causalgs.discover.video import split_sigma
+
+    rng = np.random.default_rng(0)
+    truth = np.cumsum(rng.normal(0, 0.01, (30, 200, 3)), axis=0)
+    truth[0] = truth[1] * 0
+    xa, xb = truth.copy(), truth.copy()
+    xa[1:] += rng.normal(0, 0.002, xa[1:].shape)
+    xb[1:] += rng.normal(0, 0.002, xb[1:].shape)
+    total, count = 0.0, 0
+    for f in range(1, 30):
+        for p in range(200):
+            for c in range(3):
+                total += (xa[f, p, c] - xb[f, p, c]) ** 2
+                count += 1
+    assert split_sigma(xa, xb) == pytest.approx((total / count / 2) ** 0.5, rel=1e-12)
+    assert split_sigma(xa, xb) == pytest.approx(0.002, rel=0.03)
+    shared = np.linspace(0, 0.05, 30)[:, None, None]
+    assert split_sigma(xa + shared, xb + shared) == pytest.approx(split_sigma(xa, xb), rel=1e-9)
+    assert split_sigma(xa[:1], xb[:1]) == 0.0 and split_sigma(xa, xa) == 0.0
 
 
 def test_the_lens_is_affine_only_where_held_out_cameras_ask_for_it():
