@@ -17,7 +17,10 @@ motion is a little off for many frames together, which neither the jitter estima
 missed the truth by 1–4 mm (median per frame), 1.45 mm RMS per coordinate, a third of a pixel, while the jitter
 estimate said 0.52 mm; a model with the true effect then stopped 1.6× above that "floor" and the gate turned it away.
 So a run's noise is at least :data:`RESOLVE` of a pixel's footprint at the bodies (the median over the training
-cameras of depth / focal length): what tracking from these images can resolve.
+cameras of depth / focal length): what tracking from these images can resolve. A body that deforms for good costs
+the tracks more than that (on the dent of the video table they missed the truth by 2.89 mm, two quarter pixels), so
+the noise is also measured from the images: the tracks refined again from each half of the cameras land apart by
+what one half's tracks err, and :data:`SPLIT` times that (:func:`split_sigma`) is credited where it is more.
 """
 
 from __future__ import annotations

@@ -51,6 +51,9 @@ The result (:class:`Tracks`) is each pattern's affine motion at every observed f
 and the refined motion on the frame's held-out cameras (the dataset's val split; its training cameras where it has
 none), so that what the refinement gained is measured on images it never fitted. :func:`cached_tracks` keeps it in
 the run folder (``tracks.npz``, or ``tracks-affine.npz`` with the stretch; keyed by the fit and the settings).
+Refined from one half of each frame's training cameras (``half``, :func:`camera_half`; ``tracks-half0.npz``, ...),
+two such tracks land apart by what tracks from half the cameras err independently
+(:func:`causalgs.discover.video.split_sigma`).
 """
 
 from __future__ import annotations
