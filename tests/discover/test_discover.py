@@ -144,6 +144,23 @@ def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_
         assert "Traceback" not in r.output
 
 
+def test_discover_passes_split_and_lens_to_the_measurement(tmp_path, monkeypatch):
+    """``--split/--no-split`` and ``--lens`` reach the measurement of a run (load_source, through run_discovery)."""
+    import causalgs.discover.run as R
+
+    seen = []
+
+    def fake(source, out, **kw):
+        seen.append(kw)
+        return _fake_report(None)
+
+    monkeypatch.setattr(R, "run_discovery", fake)
+    for extra, split, lens in (([], True, "auto"), (["--no-split", "--lens", "affine"], False, "affine")):
+        r = CliRunner().invoke(cli, ["discover", str(tmp_path / "obs.npz"), "--out", str(tmp_path / "d"), *extra])
+        assert r.exit_code == 0, r.output
+        assert seen[-1]["split"] is split and seen[-1]["lens"] == lens
+
+
 def _fake_report(effect: str | None, value: float = 0.0, verdict: str | None = None) -> dict:
     found = [{"effect": effect, "params": {"linear_drag.c": value},
               "interval": {"linear_drag.c": [value - 0.02, value + 0.02]}}] if effect else []  # fmt: skip

@@ -507,6 +507,12 @@ def test_discovery_reads_a_fitted_run(fitted, tmp_path):
         out / "report.md"
     ).read_text()
     assert rep["config"]["lens"].startswith("rigid per motion pattern") and tr["lens_patterns"] >= 1
+    # the tracks refined from each half of the cameras too, and the noise credited at least SPLIT times their split
+    from causalgs.discover.video import SPLIT
+
+    assert (fitted / "tracks-half0.npz").is_file() and (fitted / "tracks-half1.npz").is_file()
+    assert tr["split_sigma_m"] > 0 and rep["noise"] >= SPLIT * tr["split_sigma_m"] * (1 - 1e-12)
+    assert rep["config"]["noise_m"] == rep["noise"] and "each half of the cameras" in (out / "report.md").read_text()
     assert _ranges([3, 4, 5, 9, 11, 12]) == "3–5, 9, 11–12" and _ranges([]) == ""
     # The repair goes into a config a refit can use: the run's, with the discovered effect learned from its value.
     from causalgs.discover.run import _repaired_config
