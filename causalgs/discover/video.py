@@ -184,7 +184,7 @@ def split_sigma(xa: np.ndarray, xb: np.ndarray) -> float:
     over frames 1.., the errors of the halves being independent. A misfit both halves share does not show, and on
     the table's runs most of the error was shared: :func:`observation_from_run` credits :data:`SPLIT` times this.
 
-    Measured (seed 0, 144 frames, the fit window's 81 frames, each half 9 of the 18 training cameras): on the dent
+    Measured (seed 0, 144 frames, the fit window's 81 frames, its 17 training cameras split 9 and 8): on the dent
     (5 kPa, stretching tracks) split_sigma was 1.65 mm, and the whole tracks missed the truth's motion seen through
     their lens by 2.89 mm (each half's by 2.93 and 2.87), 1.75× it; on the elastic landing control (rigid tracks)
     0.76 mm against 1.51 mm (1.52 and 1.56), 1.97×. The quarter-pixel credit (:data:`RESOLVE`) was 1.49 and 1.41
