@@ -273,7 +273,8 @@ def markdown(report: dict) -> str:
         if tr.get("refined"):
             L += ["## The measurement", "",
                   "The measured motion is the run's tracked motion (its kinematic fit), refined frame by frame to "
-                  f"that frame's images (`tracks.npz` in the run). On {tr['views']} {tr['cameras']} camera(s) per "
+                  f"that frame's images (`{'tracks-affine' if tr.get('lens') == 'affine' else 'tracks'}.npz` in "
+                  f"the run). On {tr['views']} {tr['cameras']} camera(s) per "
                   f"frame it matches the images at a median PSNR of {tr['median']:.1f} dB over the "
                   f"{len(tr['frames'])} observed frames (the kinematic fit alone: {tr['median_kinematic']:.1f} dB; "
                   f"worst frame {min(tr['psnr']):.1f} dB against {min(tr['psnr_kinematic']):.1f})."]  # fmt: skip

@@ -512,7 +512,8 @@ def test_discovery_reads_a_fitted_run(fitted, tmp_path):
 
     assert (fitted / "tracks-half0.npz").is_file() and (fitted / "tracks-half1.npz").is_file()
     assert tr["split_sigma_m"] > 0 and rep["noise"] >= SPLIT * tr["split_sigma_m"] * (1 - 1e-12)
-    assert rep["config"]["noise_m"] == rep["noise"] and "each half of the cameras" in (out / "report.md").read_text()
+    md = (out / "report.md").read_text()
+    assert rep["config"]["noise_m"] == rep["noise"] and "each half of the cameras" in md and "`tracks.npz` in" in md
     assert _ranges([3, 4, 5, 9, 11, 12]) == "3–5, 9, 11–12" and _ranges([]) == ""
     # The repair goes into a config a refit can use: the run's, with the discovered effect learned from its value.
     from causalgs.discover.run import _repaired_config
