@@ -74,10 +74,11 @@ def _starts(text: str) -> tuple[float, ...]:
                    "deformed for good.")  # fmt: skip
 @click.option("--split/--no-split", default=True, show_default=True,
               help="For refined tracks of a run: also refine them from each half of the training cameras over the "
-                   "fit window (RUN/tracks-half0.npz, -half1; the refinement's time again) and credit the "
+                   "fit window (RUN/tracks-half0.npz, -half1; 1.5x one refinement's time) and credit the "
                    "measurement with 1.75x the error their disagreement shows, where that exceeds a quarter pixel "
-                   "at the bodies. The halves share most of what the tracks miss; on the table's runs the tracks "
-                   "erred 1.75-1.97x what the halves' disagreement alone says.")  # fmt: skip
+                   "at the bodies. The halves share most of what the tracks miss: on the landings of the video "
+                   "table the tracks erred 1.75-1.97x what the halves' disagreement alone says (in flight "
+                   "0.9x, where the quarter pixel is more).")  # fmt: skip
 @click.option("--weigh/--no-weigh", default=False, show_default=True,
               help="Through a run's rigid lens: weigh every residual by σ/√(σ² + e²), e the base fit's departure "
                    "from rigid motion at that frame and body (where rigid tracks cannot follow a deforming body, "
