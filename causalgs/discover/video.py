@@ -106,13 +106,12 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = C
         else:
             tracks = made[kinds[0]]
         if split:
-            halves = []
+            halves, again = [], lens_refinement(refine, tracks.lens)
             for i in (0, 1):
                 done = len(kinds) * n + i * observed
                 step = None if progress is None else (lambda d, t, done=done: progress(done + d, total))
-                halves.append(cached_tracks(run_dir, model, data, tl, lens_refinement(refine, kind_of(tracks)), step,
-                                            half=i, frames=observed))  # fmt: skip
-    kind = "rigid" if tracks is None else kind_of(tracks)
+                halves.append(cached_tracks(run_dir, model, data, tl, again, step, half=i, frames=observed))
+    kind = "rigid" if tracks is None else tracks.lens
     with torch.no_grad():
         h = model.mixtures(x0)
         if tracks is None:
@@ -168,11 +167,6 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = C
             base["tracking"]["lens_gain_db"] = choice["gain_db"]
             base["tracking"]["lens_agree"] = choice["agree"]
     return obs, base
-
-
-def kind_of(tracks) -> str:
-    """The lens of refined tracks: "affine" where they stretch each pattern, else "rigid"."""
-    return "affine" if tracks.stretch else "rigid"
 
 
 SPLIT = 1.75  # the noise credited per unit of split_sigma: the least ratio measured of the tracks' error to it

@@ -103,6 +103,11 @@ class Tracks:
     key: str
     stretch: bool = False  # refined with a stretch per pattern (``RefineConfig.stretch``): affine, not rigid
 
+    @property
+    def lens(self) -> str:
+        """"affine" where the tracks stretch each pattern, else "rigid"."""
+        return "affine" if self.stretch else "rigid"
+
     def positions(self, h: torch.Tensor, x0: torch.Tensor, frames=None) -> torch.Tensor:
         """Positions [F, N, 3] at ``frames`` (default all) of points with mixtures ``h`` [N, K] starting at ``x0``."""
         frames = range(len(self.A)) if frames is None else [int(k) for k in frames]
@@ -162,9 +167,11 @@ def below(x: torch.Tensor, plane: tuple[np.ndarray, float]) -> torch.Tensor:
     return torch.relu(d - x @ torch.as_tensor(n, dtype=x.dtype)).mean()
 
 
-def _key(model, cfg: RefineConfig, half: int | None = None, frames: int | None = None) -> str:
+def _key(model, cfg: RefineConfig, half: int | None = None, frames: int | None = None,
+         floor=None) -> str:  # fmt: skip
     """A fingerprint of what the refinement depends on: the tracked fields, the Gaussians, the settings, the
-    cameras (all of them, or a half) and the frames (all of them, or the first so many)."""
+    cameras (all of them, or a half), the frames (all of them, or the first so many) and, with a ground term, the
+    floor it keeps the tracks above (``floor``; None: :func:`visible_floor`)."""
     settings = asdict(cfg)
     if half is not None:
         settings["half"] = half
@@ -175,7 +182,7 @@ def _key(model, cfg: RefineConfig, half: int | None = None, frames: int | None =
     if not cfg.ground:  # and so do tracks without the ground's term
         del settings["ground"]
     else:  # the floor it keeps them above
-        plane = visible_floor(model)
+        plane = floor if floor is not None else visible_floor(model)
         settings["floor"] = None if plane is None else (tuple(float(v) for v in plane[0]), round(plane[1], 9))
     h = hashlib.sha256(repr(sorted(settings.items())).encode())
     for name, t in sorted(model.kinematic_fields.state_dict().items()):
@@ -296,7 +303,7 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
         if progress is not None:
             progress(k + 1, n)
     return Tracks(np.stack(A_out), np.stack(b_out), np.array(before), np.array(after), scored_on,
-                  _key(model, cfg, half, frames), cfg.stretch)
+                  _key(model, cfg, half, frames, plane), cfg.stretch)
 
 
 def cached_tracks(run_dir, model, data, timeline, cfg: RefineConfig | None = None, progress=None,
