@@ -182,16 +182,27 @@ def markdown(report: dict) -> str:
                   f"−{100 * (1 - math.sqrt(max(0.0, 1 - ev['future_drop']))):.0f}%; ΔBIC {ev['delta_bic']:+.1f}; "
                   + "".join(f"{p} at {z:.1f} SE; " for p, z in ev["z"].items()) + hint]  # fmt: skip
             src = d.get("interval_sources") or {}
-            if any(v for v in (src.get("se_rest_shape") or {}).values()):
-                ses = ", ".join(f"{p.split('.', 1)[1]} {src['se_noise'][p]:.3g} and {src['se_rest_shape'][p]:.3g}"
-                                for p in d["params"] if src["se_rest_shape"].get(p) is not None)  # fmt: skip
+            rest = src.get("se_rest_shape") or {}
+            track = src.get("se_tracking") or {}
+            if any(v for v in rest.values()) or any(v for v in track.values()):
+                names = ["the residuals' block bootstrap"]
+                if any(v for v in rest.values()):
+                    names.append(f"the rest shape's error of {_mm(src['rest_shape_error_m'])}"
+                                 + (f" and the bodies' extent known to ± {_mm(src['shape_resolution_m'] / 2)} a face"
+                                    if src.get("shape_resolution_m") else "") + " carried through the fit")
+                if any(v for v in track.values()):
+                    tau = src.get("drift_frames")
+                    names.append("the tracks' own error, drifting smoothly "
+                                 + (f"(correlated over {tau:.0f} frames, " if tau else "(one error for the whole "
+                                    "window, ") + "sized frame by frame as the camera halves disagree) at the "
+                                 "noise credited to them, carried through the fit")
+                ses = ", ".join(f"{p.split('.', 1)[1]} "
+                                + " and ".join(f"{v:.3g}" for v in (src["se_noise"].get(p), rest.get(p), track.get(p))
+                                               if v is not None) for p in d["params"])  # fmt: skip
                 starts = src.get("starts_within")
-                L.append(f"  - interval (95%) from two sources, standard errors: {ses} (the residuals' block "
-                         f"bootstrap, then the rest shape's error of {_mm(src['rest_shape_error_m'])}"
-                         + (f" and the bodies' extent known to ± {_mm(src['shape_resolution_m'] / 2)} a face"
-                            if src.get("shape_resolution_m") else "")
-                         + " carried through the fit)" + ("" if starts is None else
-                                               f"; {starts} refit start(s) within the profile threshold"))  # fmt: skip
+                count = {2: "two", 3: "three"}[len(names)]
+                L.append(f"  - interval (95%) from {count} sources, standard errors: {ses} ({'; '.join(names)})"
+                         + ("" if starts is None else f"; {starts} refit start(s) within the profile threshold"))
             held = d.get("at_bounds") or {}
             if held:
                 vals = d.get("base_after", {})

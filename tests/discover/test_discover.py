@@ -341,6 +341,20 @@ def test_the_report_says_how_each_other_passer_was_told_apart():
     assert "held at an end of its range" not in text
     d["at_bounds"] = {"body 0.E": "lower"}
     assert "held at an end of its range in the refit: body 0.E = 2.6e+04 (lower)" in markdown(rep)
+    # the interval's sources, each with its standard error: the residuals, the rest shape, the tracks' drift
+    d["params"] = {"linear_drag.c": 2.5}
+    d["interval_sources"] = {"se_noise": {"linear_drag.c": 0.05}, "se_rest_shape": {"linear_drag.c": 0.07},
+                             "se_tracking": {"linear_drag.c": 0.11}, "rest_shape_error_m": 0.001,
+                             "shape_resolution_m": 0.0127, "starts_within": 1, "drift_frames": 8.0}  # fmt: skip
+    text = markdown(rep)
+    assert "interval (95%) from three sources, standard errors: c 0.05 and 0.07 and 0.11" in text
+    assert "the tracks' own error, drifting smoothly (correlated over 8 frames," in text
+    d["interval_sources"].update(se_rest_shape={"linear_drag.c": None}, drift_frames=None)
+    text = markdown(rep)
+    assert "from two sources, standard errors: c 0.05 and 0.11 (the residuals' block bootstrap; the tracks' own " \
+           "error, drifting smoothly (one error for the whole window," in text
+    d["interval_sources"].update(se_tracking={"linear_drag.c": None})
+    assert "interval (95%)" not in markdown(rep)
 
 
 def test_the_report_says_the_measurement_was_refined_and_what_it_gained():
