@@ -26,7 +26,6 @@ that fit the simulation best.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -66,12 +65,11 @@ class Observation:
     # a rigid lens cannot follow a deforming body (:func:`causalgs.discover.search.lens_blind`). None: the noise
     # alone. Residuals are weighed by :meth:`residual_scale`.
     track_error: np.ndarray | None = None
-    # [T] tracked motion: how the tracks' own error, which drifts smoothly from frame to frame and which no block of
-    # residuals shows, varies in size over the frames (relative; :func:`causalgs.discover.video.drift_profile`) and
-    # ``drift_frames`` its correlation time in frames (inf: one error for the whole window). The reported intervals
-    # carry draws of such an error, of the size of the noise, through the fit. None: the noise is independent.
+    # [T] tracked motion: how the tracks' own error, which drifts smoothly over the frames and which no block of
+    # residuals shows, varies in size from frame to frame (relative; :func:`causalgs.discover.video.drift_profile`).
+    # The reported intervals carry draws of such an error, of the size of the noise, through the fit
+    # (:func:`causalgs.discover.search.drift_draws`). None: the noise is independent from frame to frame.
     drift: np.ndarray | None = None
-    drift_frames: float = math.inf
     # [T, P, 3] synthetic scenes: the positions before the noise, to score predictions against the truth (the
     # hidden-effect tables); never used by discovery itself
     clean: np.ndarray | None = None
@@ -128,9 +126,6 @@ class Observation:
             self.drift = np.asarray(self.drift, dtype=np.float64).reshape(-1)
             if len(self.drift) != T or not (np.isfinite(self.drift).all() and (self.drift >= 0).all()):
                 raise CausalGSError(f"observation: 'drift' must hold {T} finite sizes >= 0, one a frame")
-        self.drift_frames = float(self.drift_frames)
-        if not self.drift_frames > 0:  # NaN included
-            raise CausalGSError(f"observation: drift_frames = {self.drift_frames} must be > 0")
         if self.track_error is not None:
             self.track_error = np.asarray(self.track_error, dtype=np.float64)
             if self.track_error.shape != (T, self.bodies):
@@ -175,7 +170,6 @@ class Observation:
             extra["clean"] = self.clean
         if self.drift is not None:
             extra["drift"] = self.drift
-            extra["drift_frames"] = np.float64(self.drift_frames)
         write_npz(Path(path), times=self.times, x=self.x, vol=self.vol, body=self.body,
                   observed=np.int64(self.observed), lo=np.array(self.lo), hi=np.array(self.hi),
                   density=np.float64(self.density), ground=np.float64(np.nan if self.ground is None else self.ground),
@@ -218,7 +212,7 @@ def load_observation(path) -> Observation:
             names=[str(s) for s in d["names"]] if "names" in d else [],
             truth=json.loads(str(d["truth_json"])) if "truth_json" in d else None, mix=d.get("mix"),
             lens_kind=str(d.get("lens_kind", "rigid")), shape_resolution=float(d.get("shape_resolution", 0.0)),
-            clean=d.get("clean"), drift=d.get("drift"), drift_frames=float(d.get("drift_frames", math.inf)),
+            clean=d.get("clean"), drift=d.get("drift"),
         )  # fmt: skip
     except CausalGSError as e:
         raise CausalGSError(f"{path}: {e}") from None

@@ -191,11 +191,8 @@ def markdown(report: dict) -> str:
                                  + (f" and the bodies' extent known to ± {_mm(src['shape_resolution_m'] / 2)} a face"
                                     if src.get("shape_resolution_m") else "") + " carried through the fit")
                 if any(v for v in track.values()):
-                    tau = src.get("drift_frames")
-                    names.append("the tracks' own error, drifting smoothly "
-                                 + (f"(correlated over {tau:.0f} frames, " if tau else "(one error for the whole "
-                                    "window, ") + "sized frame by frame as the camera halves disagree) at the "
-                                 "noise credited to them, carried through the fit")
+                    names.append("the tracks' own smooth error, one for the whole window at the noise credited "
+                                 "to them, sized frame by frame as the camera halves disagree, carried through the fit")
                 ses = ", ".join(f"{p.split('.', 1)[1]} "
                                 + " and ".join(f"{v:.3g}" for v in (src["se_noise"].get(p), rest.get(p), track.get(p))
                                                if v is not None) for p in d["params"])  # fmt: skip

@@ -385,26 +385,17 @@ def drift_field(obs: Observation, z: np.ndarray) -> np.ndarray:
 
 def drift_fields(obs: Observation, frames, sigma: float, samples: int, seed: int = 1):
     """``samples`` draws [F, P, 3] of the tracks' own smooth error over ``frames``: the observation's lens moved by
-    a small motion per pattern (:func:`drift_field`) whose coefficients drift over the frames as a Gaussian process
-    with the observation's correlation time (``Observation.drift_frames``; inf: one motion for every frame), each
-    frame's error scaled to ``sigma`` (m per coordinate) times the observation's drift profile there
+    one small motion per pattern (:func:`drift_field`, coefficients N(0, 1)) for the whole window, each frame's
+    error scaled to ``sigma`` (m per coordinate) times the observation's drift profile there
     (``Observation.drift``). Nothing where the observation has none."""
     if obs.drift is None or sigma <= 0:
         return
     frames = list(frames)
-    F = len(frames)
     size = sigma * obs.drift[frames]  # [F] m per coordinate
-    tau = obs.drift_frames
-    t = np.arange(F, dtype=np.float64)
-    if math.isfinite(tau):  # C = L Lᵀ, C the squared-exponential covariance (eigenvalues to round-off clipped)
-        lam, V = np.linalg.eigh(np.exp(-0.5 * ((t[:, None] - t[None]) / tau) ** 2))
-        L = V * np.sqrt(np.clip(lam, 0.0, None))
-    else:  # one motion for every frame
-        L = np.ones((F, 1))
     K = obs.mix.shape[1] if obs.mix is not None else obs.bodies
     rng = np.random.default_rng(seed)
     for _ in range(samples):
-        e = drift_field(obs, (L @ rng.normal(size=(L.shape[1], K * 12))).reshape(F, K, 12))
+        e = drift_field(obs, np.broadcast_to(rng.normal(size=(1, K, 12)), (len(frames), K, 12)))
         per = np.sqrt((e**2).mean(axis=(1, 2)))
         yield e * (size / np.where(per > 0, per, 1.0))[:, None, None]
 
@@ -416,11 +407,13 @@ def drift_draws(model: PhysicsModel, J: np.ndarray, sigma: float, samples: int, 
     which the block bootstrap resamples).
 
     Tracking errs smoothly over many frames and shares most of its error between any two subsets of the cameras;
-    a block of residuals is the residual of one fit and cannot show it. On the dent (5 kPa, seed 0, affine tracks,
-    2.88 mm credited), the truth's own motion through the lens refitted to 5.09 kPa and the tracks to 6.17: the
-    tracks' error moved the yield stress by +1040 Pa (linearised; refitted, +1080), against a standard error of
-    102 Pa from the block bootstrap and 45 Pa from the halves' own disagreement. Draws with the halves' profile gave
-    362 Pa (a correlation time of 8 frames) to 536 Pa (one error for the whole window)."""
+    a block of residuals is the residual of one fit and cannot show it, and the halves' disagreement shows where it
+    is large, not how it drifts. So each draw is one error for the whole window, the most a smooth error can move
+    the fit by. On the dent (5 kPa, seed 0, affine tracks, 2.88 mm credited), the truth's own motion through the
+    lens refitted to 5.09 kPa and the tracks to 6.17: the tracks' error moved the yield stress by +1040 Pa
+    (linearised; refitted, +1080), against standard errors of 102 Pa from the block bootstrap and 45 Pa from the
+    halves' own disagreement. These draws: 536 Pa (errors redrawn as a squared-exponential process of 8 frames'
+    correlation: 362 Pa; of 2 frames: 148)."""
     fr = fit_frames(model)
     fields = list(drift_fields(model.obs, fr, sigma, samples, seed))
     if not fields:
@@ -1037,8 +1030,6 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
             "interval_sources": {"se_noise": {p: unc[p].get("se_noise") for p in c.params},
                                  "se_rest_shape": {p: unc[p].get("se_rest_shape") for p in c.params},
                                  "se_tracking": {p: unc[p].get("se_tracking") for p in c.params},
-                                 "drift_frames": obs.drift_frames if obs.drift is not None
-                                 and math.isfinite(obs.drift_frames) else None,
                                  "rest_shape_error_m": rest_sigma,
                                  "shape_resolution_m": report["shape_resolution_m"],
                                  "starts_within": min(unc[p]["starts_within"] for p in c.params)},

@@ -129,8 +129,7 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = C
         raise CausalGSError(f"{run_dir}: no group of particles large enough to be a body")
     x, h, body, vol = x[:, ~stray], h[~stray], body[~stray], vol[~stray]
     split_m = None if parts is None else split_sigma(parts[0][:, ~stray], parts[1][:, ~stray])
-    drift, drift_frames = (np.ones(n), math.inf) if parts is None else drift_profile(parts[0][:, ~stray],
-                                                                                    parts[1][:, ~stray], n)
+    drift = np.ones(n) if parts is None else drift_profile(parts[0][:, ~stray], parts[1][:, ~stray], n)
     rng = np.random.default_rng(seed)
     if len(vol) > max_points:  # a volume-preserving subset, the same share of every body
         keep = []
@@ -157,8 +156,8 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = C
                       mix=lens(h) if lens_kind is not None else None, lens_kind=kind,
                       # the fit filled its bodies with particles at half a grid cell: a face is known to ± a quarter
                       shape_resolution=0.5 * float(model.cell),
-                      # tracks err smoothly: without the halves, as one error over the whole window
-                      drift=drift, drift_frames=drift_frames)  # fmt: skip
+                      # tracks err smoothly, more where the halves disagree more (without them: alike everywhere)
+                      drift=drift)  # fmt: skip
     pixel = pixel_footprint(data.train, x[0].mean(0))
     obs.noise = max(noise_floor(obs), RESOLVE * pixel, SPLIT * split_m if split_m is not None else 0.0)
     base = {"spec": eff.spec(), "learn": tuple(cfg.learn), "res": int(cfg.res), "run": str(run_dir),
@@ -167,7 +166,6 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = C
         base["tracking"] = refined_quality(tracks)
         base["tracking"]["split_sigma_m"] = split_m
         base["tracking"]["noise_m"] = obs.noise
-        base["tracking"]["drift_frames"] = drift_frames if math.isfinite(drift_frames) else None
         if choice is not None:
             base["tracking"]["lens_choice"] = choice["text"]
             base["tracking"]["lens_gain_db"] = choice["gain_db"]
@@ -201,45 +199,35 @@ def split_sigma(xa: np.ndarray, xb: np.ndarray) -> float:
 DRIFT_SMOOTH = 5  # frames: the running mean that smooths the halves' disagreement per frame into a drift profile
 
 
-def drift_profile(xa: np.ndarray, xb: np.ndarray, frames: int) -> tuple[np.ndarray, float]:
-    """How the tracks' error varies over ``frames`` frames, from tracks of the same points fitted to disjoint halves
-    of the cameras (``xa``, ``xb`` [F, P, 3], F ≤ frames, frame 0 the shared start): (the halves' disagreement per
-    frame, RMS over the points, a running mean over :data:`DRIFT_SMOOTH` frames, relative to its RMS over frames
-    1..F−1; frames past F keep the last value) and its correlation time in frames, the lag at which the
-    frame-to-frame correlation of the disagreement's direction (each frame's difference field normalised) first
-    falls below e^(−1/2), a squared-exponential's at one correlation time (inf where it never does: one error for
-    the whole window). Returns ([frames] profile, correlation time); a flat profile and inf where the halves agree
-    exactly. :func:`causalgs.discover.search.drift_draws` draws errors with that profile and correlation time.
+def drift_profile(xa: np.ndarray, xb: np.ndarray, frames: int) -> np.ndarray:
+    """[frames] how the tracks' error varies in size over the frames, from tracks of the same points fitted to
+    disjoint halves of the cameras (``xa``, ``xb`` [F, P, 3], F ≤ frames, frame 0 the shared start): their
+    disagreement per frame (RMS over the points), a running mean over :data:`DRIFT_SMOOTH` frames, relative to its
+    RMS over frames 1..F−1; frame 0 takes frame 1's value and frames past F the last one. Flat where the halves
+    agree exactly. :func:`causalgs.discover.search.drift_draws` draws the tracks' smooth error with this profile.
 
-    Measured on the dent (5 kPa, seed 0, affine tracks, the 81-frame window): the halves' disagreement is 0.6-0.8
-    mm a frame before the impact (frame 41) and 1.8-2.6 mm after it; the tracks' real error (against the truth's
-    motion through the lens) 0.7-0.9 and 3.2-4.3 mm."""
+    The halves show where tracking is hard, not how the error they share drifts: on the dent (5 kPa, seed 0,
+    affine tracks, the 81-frame window) they disagreed by 0.6-0.8 mm a frame before the impact (frame 41) and
+    1.8-2.6 mm after it, where the tracks' real error (against the truth's motion through the lens) was 0.7-0.9
+    and 3.2-4.3 mm; but the direction of their disagreement changed from one frame to the next (correlated by less
+    than e^(−1/2) one frame apart), while the shared error moved the refit as one error would."""
     d = np.asarray(xa, dtype=np.float64) - np.asarray(xb, dtype=np.float64)
     F = len(d)
     flat = np.ones(frames)
-    if F < 3:
-        return flat, math.inf
-    size = np.sqrt((d**2).mean(axis=(1, 2)))  # [F]
-    if not (size[1:] > 0).any():
-        return flat, math.inf
+    if F < 2:
+        return flat
+    size = np.sqrt((d[1:] ** 2).mean(axis=(1, 2)))  # [F-1]
+    if not (size > 0).any():
+        return flat
     k = min(DRIFT_SMOOTH, F - 1)
-    pad = np.pad(size[1:], (k // 2, k - 1 - k // 2), mode="edge")
+    pad = np.pad(size, (k // 2, k - 1 - k // 2), mode="edge")
     smooth = np.convolve(pad, np.ones(k) / k, mode="valid")  # [F-1], frames 1..F-1
     prof = np.empty(frames)
     prof[0] = smooth[0]
     n = min(frames - 1, len(smooth))
     prof[1 : 1 + n] = smooth[:n]
     prof[1 + n :] = smooth[-1]
-    prof /= math.sqrt((smooth**2).mean())
-    u = d[1:].reshape(F - 1, -1)
-    norm = np.linalg.norm(u, axis=1)
-    u = u[norm > 0] / norm[norm > 0, None]
-    tau = math.inf
-    for lag in range(1, len(u)):
-        if float(np.mean(np.sum(u[lag:] * u[:-lag], axis=1))) < math.exp(-0.5):
-            tau = float(lag)
-            break
-    return prof, tau
+    return prof / math.sqrt((smooth**2).mean())
 
 
 STRETCH_GROUND = 10.0  # per metre: the stretching tracks' weight on their depth under the floor (RefineConfig.ground)

@@ -345,14 +345,14 @@ def test_the_report_says_how_each_other_passer_was_told_apart():
     d["params"] = {"linear_drag.c": 2.5}
     d["interval_sources"] = {"se_noise": {"linear_drag.c": 0.05}, "se_rest_shape": {"linear_drag.c": 0.07},
                              "se_tracking": {"linear_drag.c": 0.11}, "rest_shape_error_m": 0.001,
-                             "shape_resolution_m": 0.0127, "starts_within": 1, "drift_frames": 8.0}  # fmt: skip
+                             "shape_resolution_m": 0.0127, "starts_within": 1}  # fmt: skip
     text = markdown(rep)
     assert "interval (95%) from three sources, standard errors: c 0.05 and 0.07 and 0.11" in text
-    assert "the tracks' own error, drifting smoothly (correlated over 8 frames," in text
-    d["interval_sources"].update(se_rest_shape={"linear_drag.c": None}, drift_frames=None)
+    assert "the tracks' own smooth error, one for the whole window at the noise credited to them" in text
+    d["interval_sources"].update(se_rest_shape={"linear_drag.c": None})
     text = markdown(rep)
     assert "from two sources, standard errors: c 0.05 and 0.11 (the residuals' block bootstrap; the tracks' own " \
-           "error, drifting smoothly (one error for the whole window," in text
+           "smooth error" in text
     d["interval_sources"].update(se_tracking={"linear_drag.c": None})
     assert "interval (95%)" not in markdown(rep)
 

@@ -765,10 +765,9 @@ def test_refinement_finds_a_displacement_the_velocity_field_missed(fitted, tmp_p
         dist, _ = cKDTree(quick_positions[k]).query(obs.x[k])
         assert dist.max() < 1e-6  # every measured point is a refined particle position
     assert not np.allclose(obs.x[-1], plain.x[-1], atol=1e-6) and want.shape[0] == n
-    assert base_model["tracking"] == {**refined_quality(first), "split_sigma_m": None, "noise_m": obs.noise,
-                                      "drift_frames": None}  # fmt: skip
-    # without the halves, the tracks' error is drawn as one error over the whole window
-    assert np.array_equal(obs.drift, np.ones(n)) and obs.drift_frames == math.inf
+    assert base_model["tracking"] == {**refined_quality(first), "split_sigma_m": None, "noise_m": obs.noise}
+    # without the halves, the tracks' smooth error is drawn alike at every frame
+    assert np.array_equal(obs.drift, np.ones(n))
     assert "tracking" not in plain_model
     # "auto" refines with a stretch too (following both in one progress) and keeps the rigid tracks unless held-out
     # cameras ask for the stretch; "affine" takes the stretching tracks whatever they score
@@ -795,9 +794,7 @@ def test_refinement_finds_a_displacement_the_velocity_field_missed(fitted, tmp_p
     # ... and how their disagreement varies over the frames, and for how long it keeps its direction
     from causalgs.discover.video import drift_profile
 
-    want_drift, want_tau = drift_profile(xa[:, keep], xb[:, keep], n)
-    assert np.allclose(auto.drift, want_drift, rtol=1e-12) and auto.drift_frames == want_tau
-    assert auto_model["tracking"]["drift_frames"] == (want_tau if math.isfinite(want_tau) else None)
+    assert np.allclose(auto.drift, drift_profile(xa[:, keep], xb[:, keep], n), rtol=1e-12)
     affine, _ = observation_from_run(run, refine=quick, lens_kind="affine")
     assert affine.lens_kind == "affine" and np.allclose(affine.x[0], obs.x[0])
     tr = auto_model["tracking"]
@@ -929,32 +926,31 @@ def test_the_ground_term_keeps_stretching_tracks_out_of_the_ground(fitted, tmp_p
     assert visible_floor(scene(room, body, moving=len(body))) is None
 
 
-def test_the_drift_profile_follows_how_far_apart_the_halves_land_and_for_how_long():
-    """drift_profile on two tracks whose disagreement turns through a plane at one radian per τ0 frames (so frames
-    L apart correlate by cos(L/τ0)) and is three times larger after frame 20: the correlation time is the first lag
-    with cos(L/τ0) < e^(−1/2), the profile 3× larger after the step than before it (away from the running mean's
-    reach), RMS 1 over the frames, later frames at the last value; halves that agree give a flat profile and inf."""
+def test_the_drift_profile_follows_how_far_apart_the_halves_land():
+    """drift_profile against a plain loop on two tracks whose disagreement is three times larger after frame 20: the
+    running mean of the per-frame RMS, RMS 1 over the frames, 3× larger after the step than before it (away from
+    the running mean's reach), frame 0 at frame 1's value and later frames at the last one; halves that agree give a
+    flat profile."""
     from causalgs.discover.video import DRIFT_SMOOTH, drift_profile
 
     rng = np.random.default_rng(0)
-    u, v = rng.normal(size=(2, 100, 3))
-    v -= u * (u * v).sum() / (u * u).sum()
-    u, v = u / np.linalg.norm(u), v / np.linalg.norm(v)
-    tau0, F = 10.0, 60
-    t = np.arange(F)
-    size = np.where(t < 20, 1.0, 3.0)
-    d = size[:, None, None] * (np.cos(t / tau0)[:, None, None] * u + np.sin(t / tau0)[:, None, None] * v)
+    F, P = 60, 100
+    size = np.where(np.arange(F) < 20, 1.0, 3.0)
+    d = size[:, None, None] * rng.normal(size=(F, P, 3))
     d[0] = 0.0
-    xb = rng.normal(size=(F, 100, 3))
-    prof, tau = drift_profile(xb + 0.001 * d, xb, 80)
-    want = next(lag for lag in range(1, F) if math.cos(lag / tau0) < math.exp(-0.5))
-    assert tau == want == 10
-    assert len(prof) == 80 and math.sqrt((prof[1:F] ** 2).mean()) == pytest.approx(1.0, rel=1e-9)
-    reach = DRIFT_SMOOTH // 2 + 1
-    assert prof[30] / prof[10] == pytest.approx(3.0, rel=1e-9) and prof[20 - reach] < prof[20 + reach]
-    assert np.all(prof[F:] == prof[F - 1])
-    flat, never = drift_profile(xb, xb, 80)
-    assert np.array_equal(flat, np.ones(80)) and never == math.inf
+    xb = rng.normal(size=(F, P, 3))
+    prof = drift_profile(xb + 0.001 * d, xb, 80)
+    per = []
+    for f in range(1, F):
+        per.append(math.sqrt(sum(float(v) ** 2 for v in (0.001 * d[f]).reshape(-1)) / (P * 3)))
+    h = DRIFT_SMOOTH // 2
+    padded = [per[0]] * h + per + [per[-1]] * (DRIFT_SMOOTH - 1 - h)
+    smooth = [sum(padded[i : i + DRIFT_SMOOTH]) / DRIFT_SMOOTH for i in range(F - 1)]
+    norm = math.sqrt(sum(v * v for v in smooth) / len(smooth))
+    assert np.allclose(prof[1:F], np.array(smooth) / norm, rtol=1e-9)
+    assert len(prof) == 80 and prof[0] == prof[1] and np.all(prof[F:] == prof[F - 1])
+    assert prof[35] / prof[10] == pytest.approx(3.0, rel=0.1)
+    assert np.array_equal(drift_profile(xb, xb, 80), np.ones(80))
 
 
 def test_split_sigma_is_the_error_of_one_half_when_the_halves_err_independently():
