@@ -395,9 +395,9 @@ def drift_fields(obs: Observation, frames, sigma: float, samples: int, seed: int
     K = obs.mix.shape[1] if obs.mix is not None else obs.bodies
     rng = np.random.default_rng(seed)
     for _ in range(samples):
-        e = drift_field(obs, np.broadcast_to(rng.normal(size=(1, K, 12)), (len(frames), K, 12)))
-        per = np.sqrt((e**2).mean(axis=(1, 2)))
-        yield e * (size / np.where(per > 0, per, 1.0))[:, None, None]
+        e = drift_field(obs, rng.normal(size=(1, K, 12)))[0]  # [P, 3], the same at every frame
+        rms = float(np.sqrt((e**2).mean()))
+        yield size[:, None, None] * (e / rms if rms > 0 else e)[None]
 
 
 def drift_draws(model: PhysicsModel, J: np.ndarray, sigma: float, samples: int, seed: int = 1) -> np.ndarray:
