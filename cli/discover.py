@@ -111,7 +111,9 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     passers, the held-out frames choose first and BIC among those they do not tell apart.
 
     \b
-    Verdicts: the named effect(s) with their law and interval; "ambiguous" (the data does not separate two
+    Verdicts: the named effect(s) with their law and 95% interval (the residuals' block bootstrap, the rest shape's
+    error and the bodies' extent, for a run the tracks' own smooth error at the noise credited to them, and refit
+    starts the data cannot tell apart); "ambiguous" (the data does not separate two
     candidates); "no missing effect"; "unexplained discrepancy" (the model stays well above the noise floor, a
     free force would help, but no named effect passes).
 
