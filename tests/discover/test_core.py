@@ -1207,6 +1207,42 @@ def test_the_tracks_drift_is_drawn_at_its_size_and_carried_through_the_fit(monke
     assert search.drift_draws(SimpleNamespace(obs=_flight(frames=40)), J, sigma, 7).shape == (0, 3)
 
 
+def test_an_interval_carries_the_tracks_drift_where_the_measurement_is_tracked():
+    """_uncertainty on a free flight seen through one rigid pattern: with a drift profile, each parameter's
+    ``se_tracking`` is the spread of drift_draws (its linearised refit of the tracks' smooth error at the noise) and
+    the interval is wider than without it; the gate's z is the bootstrap's alone either way; without a
+    profile there is no such entry."""
+    import dataclasses
+
+    from causalgs import _ti
+    from causalgs.discover import search
+    from causalgs.discover.calibrate import Fit, fit_frames
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.screen import sensitivities
+
+    _ti.init("cpu", "float32")
+    plain = _flight(frames=10, noise=0.001, seed=2)
+    plain = dataclasses.replace(plain, mix=np.ones((plain.points, 1)), noise=0.002)
+    tracked = dataclasses.replace(plain, drift=np.linspace(0.5, 1.5, len(plain.times)))
+    cfg = search.DiscoverConfig(res=16)
+    out = {}
+    for name, obs in (("plain", plain), ("tracked", tracked)):
+        m = PhysicsModel(obs, "gravity;walls", res=16)
+        th = m.initial(E=3e4)
+        st = search._state(m, Fit(th, 0.0, 1, 3e4))
+        out[name] = (m, th, search._uncertainty(st, ["cube.v0[0]", "cube.v0[2]"], cfg))
+    m, th, unc = out["tracked"]
+    J = sensitivities(m, th, fit_frames(m))
+    draws = search.drift_draws(m, J, 0.002, cfg.gate.resamples)
+    for p in ("cube.v0[0]", "cube.v0[2]"):
+        i = m.index(p)
+        assert unc[p]["se_tracking"] == pytest.approx(draws[:, i].std(), rel=1e-9) and unc[p]["se_tracking"] > 0
+        lo, hi = unc[p]["interval"]
+        lo0, hi0 = out["plain"][2][p]["interval"]
+        assert hi - lo > 1.2 * (hi0 - lo0) and unc[p]["z"] == pytest.approx(out["plain"][2][p]["z"])
+        assert "se_tracking" not in out["plain"][2][p]
+
+
 def test_a_model_is_settled_only_within_the_noise_on_both_windows():
     from causalgs.discover.search import State, held_out_floor, settled
 
