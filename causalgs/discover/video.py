@@ -185,12 +185,13 @@ def split_sigma(xa: np.ndarray, xb: np.ndarray) -> float:
     Measured (seed 0, 144 frames, the fit window's 81 frames, its 17 training cameras split 9 and 8): on the dent
     (5 kPa, stretching tracks) split_sigma was 1.65 mm, and the whole tracks missed the truth's motion seen through
     their lens by 2.89 mm (each half's by 2.93 and 2.87), 1.75× it; on the elastic landing control (rigid tracks)
-    0.76 mm against 1.51 mm (1.52 and 1.56), 1.97×; on the damped landing (η = 200 Pa·s, rigid tracks) 0.53 mm
-    against 0.93 mm (0.91 and 0.95), 1.75×. The quarter-pixel credit (:data:`RESOLVE`) was 1.49 and 1.41
-    mm: right for the control, half the dent's. In free flight the halves tell the whole error: on the linear drag
-    of the table (seed 1, 48 frames, its window's 27) split_sigma was 0.44 mm and the tracks missed the truth by
-    0.40 mm, and the quarter pixel (1.16 mm) stays the credit. What a body that deforms for good costs the tracks
-    shows in how far apart the halves land, and the credit follows it."""
+    0.76 mm against 1.51 mm (1.52 and 1.56), 1.97× (seed 1: 0.82 against 1.71 mm, 2.09×); on the damped landing
+    (η = 200 Pa·s, rigid tracks) 0.53 mm against 0.93 mm (0.91 and 0.95), 1.75×. The quarter-pixel credit
+    (:data:`RESOLVE`) was 1.49 and 1.41 mm on the dent and the control: right for the control, half the dent's. In
+    free flight the halves tell the whole error: on the linear drag of the table (seed 1, 48 frames, its window's
+    27) split_sigma was 0.44 mm and the tracks missed the truth by 0.40 mm, and the quarter pixel (1.16 mm) stays
+    the credit. What a body that deforms for good costs the tracks shows in how far apart the halves land, and the
+    credit follows it."""
     d = np.asarray(xa, dtype=np.float64)[1:] - np.asarray(xb, dtype=np.float64)[1:]
     if d.size == 0:
         return 0.0
