@@ -383,21 +383,26 @@ def drift_field(obs: Observation, z: np.ndarray) -> np.ndarray:
     return np.einsum("pk,fpki->fpi", mix, move + b[:, None])
 
 
-def drift_fields(obs: Observation, frames, sigma: float, samples: int, seed: int = 1):
-    """``samples`` draws [F, P, 3] of the tracks' own smooth error over ``frames``: the observation's lens moved by
-    one small motion per pattern (:func:`drift_field`, coefficients N(0, 1)) for the whole window, each frame's
-    error scaled to ``sigma`` (m per coordinate) times the observation's drift profile there
-    (``Observation.drift``). Nothing where the observation has none."""
-    if obs.drift is None or sigma <= 0:
-        return
-    frames = list(frames)
-    size = sigma * obs.drift[frames]  # [F] m per coordinate
+def drift_shapes(obs: Observation, samples: int, seed: int = 1):
+    """``samples`` draws [P, 3] of the shape of the tracks' own smooth error: the observation's lens moved by one
+    small motion per pattern (:func:`drift_field`, coefficients N(0, 1)), scaled to RMS 1."""
     K = obs.mix.shape[1] if obs.mix is not None else obs.bodies
     rng = np.random.default_rng(seed)
     for _ in range(samples):
-        e = drift_field(obs, rng.normal(size=(1, K, 12)))[0]  # [P, 3], the same at every frame
+        e = drift_field(obs, rng.normal(size=(1, K, 12)))[0]
         rms = float(np.sqrt((e**2).mean()))
-        yield size[:, None, None] * (e / rms if rms > 0 else e)[None]
+        yield e / rms if rms > 0 else e
+
+
+def drift_fields(obs: Observation, frames, sigma: float, samples: int, seed: int = 1):
+    """``samples`` draws [F, P, 3] of the tracks' own smooth error over ``frames``: one shape
+    (:func:`drift_shapes`) for the whole window, each frame's error scaled to ``sigma`` (m per coordinate) times
+    the observation's drift profile there (``Observation.drift``). Nothing where the observation has none."""
+    if obs.drift is None or sigma <= 0:
+        return
+    size = sigma * obs.drift[list(frames)]  # [F] m per coordinate
+    for e in drift_shapes(obs, samples, seed):
+        yield size[:, None, None] * e[None]
 
 
 def drift_draws(model: PhysicsModel, J: np.ndarray, sigma: float, samples: int, seed: int = 1) -> np.ndarray:
@@ -414,12 +419,16 @@ def drift_draws(model: PhysicsModel, J: np.ndarray, sigma: float, samples: int, 
     (linearised; refitted, +1080), against standard errors of 102 Pa from the block bootstrap and 45 Pa from the
     halves' own disagreement. These draws: 536 Pa (errors redrawn as a squared-exponential process of 8 frames'
     correlation: 362 Pa; of 2 frames: 148)."""
-    fr = fit_frames(model)
-    fields = list(drift_fields(model.obs, fr, sigma, samples, seed))
-    if not fields:
+    obs = model.obs
+    if obs.drift is None or sigma <= 0 or samples <= 0:
         return np.zeros((0, J.shape[1]))
-    pinv = refit_map(model, J)
-    return np.array([pinv @ weighted(model.obs, e, fr).reshape(-1) / UNIT for e in fields])
+    fr = fit_frames(model)
+    # A draw is its shape times each frame's size, so the refit of every draw is one map of the shape [P·3]: the
+    # refit map summed over the frames with the sizes (and the residual weights), computed once.
+    size = np.broadcast_to((sigma * obs.drift[fr])[:, None, None], (len(fr), obs.points, 3))
+    per_shape = np.einsum("kfpc,fpc->kpc", refit_map(model, J).reshape(J.shape[1], len(fr), obs.points, 3),
+                          weighted(obs, size, fr)).reshape(J.shape[1], -1)  # fmt: skip
+    return np.array([per_shape @ e.reshape(-1) for e in drift_shapes(obs, samples, seed)]) / UNIT
 
 
 def rest_shape_error(state: State, obs: Observation, floor: float, sigma: float) -> float:
