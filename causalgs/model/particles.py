@@ -109,6 +109,7 @@ class TooManyParticles(Exception):
 
 MAX_EXTRA_CLOSING = 8  # closing iterations tried beyond the first when a surface has not sealed
 SEALED = 0.75  # a body is sealed once its filled volume reaches this share of its volume at the most closing
+SEAL_JUMP = 0.05  # ... and no further closing grows it by more than this share at once (a cavity sealing)
 
 
 def seal_and_fill(occ: np.ndarray, first: int) -> np.ndarray:
@@ -119,9 +120,12 @@ def seal_and_fill(occ: np.ndarray, first: int) -> np.ndarray:
     are a fraction of the body's. So every body (a connected part of the once-closed occupancy), closed on its own so
     that no closing bridges two bodies, takes the fewest closing iterations, from ``first`` up to
     ``first + MAX_EXTRA_CLOSING``, whose filled volume reaches ``SEALED`` of the most-closed one: a hollow shell holds
-    a small share of it, a solid body nearly all of it. The fewest iterations keep a concave shape's notch, unless the
-    notch is more than a quarter of the closed volume and narrower than the closing (then it is filled). ``occ`` must
-    be padded by ``first`` voxels (each body is padded further on its own)."""
+    a small share of it, a solid body nearly all of it. A thick-walled body (a small block whose faces are two or
+    three voxels deep, its unseen face gappy) holds most of its volume even hollow, so the fill also waits until no
+    further closing grows it by more than ``SEAL_JUMP`` at once: a cavity sealing is a jump (a third of the volume
+    on such a block), a concave notch filling grows it gradually. The fewest such iterations keep a concave shape's
+    notch, unless the notch is more than a quarter of the closed volume and narrower than the closing (then it is
+    filled). ``occ`` must be padded by ``first`` voxels (each body is padded further on its own)."""
     cube = np.ones((3, 3, 3), bool)
     most = first + MAX_EXTRA_CLOSING
     labels, _ = ndimage.label(ndimage.binary_closing(occ, structure=cube, iterations=first), structure=cube)
@@ -134,7 +138,9 @@ def seal_and_fill(occ: np.ndarray, first: int) -> np.ndarray:
         filled = [ndimage.binary_fill_holes(ndimage.binary_closing(mine, structure=cube, iterations=c))
                   for c in range(first, most + 1)]  # fmt: skip
         vols = np.array([np.count_nonzero(f) for f in filled], dtype=np.float64)
-        pick = int(np.argmax(vols >= SEALED * vols[-1]))
+        jumps = np.flatnonzero(vols[1:] > (1.0 + SEAL_JUMP) * vols[:-1])
+        after = int(jumps[-1]) + 1 if len(jumps) else 0
+        pick = max(after, int(np.argmax(vols >= SEALED * vols[-1])))
         inner = tuple(slice(most, most + (a.stop - a.start)) for a in sl)
         out[sl] |= filled[pick][inner]
     return out
