@@ -85,6 +85,28 @@ def test_initial_twist_from_the_first_frames_is_exact_for_free_fall():
     assert math.isclose(vals["cube.E"], 3e4, rel_tol=1e-6) and math.isclose(vals["cube.nu"], 0.25, rel_tol=1e-6)
 
 
+def test_the_initial_twist_takes_the_whole_flight_before_a_contact():
+    """With noisy tracks the spin from five frames is the noise's; the flight before the first contact (where the
+    parabolas stop following the paths) pins it down, and the contact's frames are left out."""
+    from dataclasses import replace
+
+    from causalgs import _ti
+    from causalgs.discover.model import TWIST_FRAMES, PhysicsModel
+
+    _ti.init("cpu", "float32")
+    obs = _flight(frames=48, fps=120.0, noise=0.002, seed=3)
+    x = obs.x.copy()
+    x[30:] = x[29:30] + (x[30:] - _flight(frames=48, fps=120.0).x[30:])  # lands at frame 29 and stays (the noise kept)
+    obs = replace(obs, x=x, noise=0.002)
+    m = PhysicsModel(obs, "gravity;walls", res=16)
+    k = m._flight_frames()
+    assert 28 <= k <= 31, k
+    flight, five = m.fitted_twists(), m.fitted_twists(TWIST_FRAMES)
+    spin = lambda tw: float(np.linalg.norm(tw[0, 3:]))  # noqa: E731 (the truth has none)
+    assert spin(flight) < 0.3 * spin(five), (spin(flight), spin(five))
+    assert np.abs(flight[0, :3] - [0.4, -0.2, 1.0]).max() < 0.3 * np.abs(five[0, :3] - [0.4, -0.2, 1.0]).max()
+
+
 def test_a_viscosity_is_bounded_where_its_substep_would_outrun_the_elastic_one():
     """A learned viscosity stops where explicit diffusion's substep, dx²ρ/(6η), is SUBSTEP_COST times the elastic
     substep dx/c of the stiffest allowed material; values round-trip inside the bound, and no θ goes past it."""
