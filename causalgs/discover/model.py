@@ -193,23 +193,31 @@ class PhysicsModel:
     def initial(self, E: float = 5e4, nu: float = 0.3, effects: dict | None = None) -> torch.Tensor:
         """θ at the stiffness ``E``, ratio ``nu``, the initial velocity fitted to the first observed frames (a rigid
         twist per body, least squares on the first differences) and the spec's effect values (or ``effects``)."""
-        lo, hi = (math.log(a) for a in self.E_range)
-        s = min(max((math.log(E) - lo) / (hi - lo), 1e-4), 1 - 1e-4)
-        t = min(max((nu - self.nu_range[0]) / (self.nu_range[1] - self.nu_range[0]), 1e-4), 1 - 1e-4)
         twist = self.fitted_twists()
         flat = self.effects.flat()
         out = []
         for k in self.knobs:
             if k.kind == "E":
-                out.append(math.log(s / (1 - s)))
+                out.append(self.E_internal(E))
             elif k.kind == "nu":
-                out.append(math.log(t / (1 - t)))
+                out.append(self.nu_internal(nu))
             elif k.kind in ("u", "w"):
                 out.append(float(twist[k.body, (0 if k.kind == "u" else 3) + k.index]))
             else:
                 v = (effects or {}).get(k.name, float(flat[k.index]))
                 out.append(k.internal(v))
         return torch.tensor(out, dtype=torch.float64)
+
+    def E_internal(self, E: float) -> float:
+        """A stiffness (Pa) in θ's units: log-space inside ``E_range``, kept off its ends."""
+        lo, hi = (math.log(a) for a in self.E_range)
+        s = min(max((math.log(E) - lo) / (hi - lo), 1e-4), 1 - 1e-4)
+        return math.log(s / (1 - s))
+
+    def nu_internal(self, nu: float) -> float:
+        """A Poisson ratio in θ's units, inside ``nu_range``, kept off its ends."""
+        t = min(max((nu - self.nu_range[0]) / (self.nu_range[1] - self.nu_range[0]), 1e-4), 1 - 1e-4)
+        return math.log(t / (1 - t))
 
     def fitted_twists(self, frames: int | None = None) -> np.ndarray:
         """[B, 6] (u, ω) per body: the rigid velocity field that best fits the initial velocities of the points
@@ -224,7 +232,7 @@ class PhysicsModel:
         the ground 2 cm high."""
         obs = self.obs
         if frames is None:
-            k = self._flight_frames()
+            k = self.flight_frames()
         else:
             k = max(3, min(frames, obs.observed))
         t = obs.times[:k] - obs.times[0]
@@ -240,7 +248,7 @@ class PhysicsModel:
             out[b] = sol
         return out
 
-    def _flight_frames(self) -> int:
+    def flight_frames(self) -> int:
         """The most first frames of the fit window over which a parabola per point stays within ``TWIST_FIT``
         times the noise of every point's path, frame by frame (RMS over the points); at least ``TWIST_FRAMES``."""
         obs = self.obs

@@ -44,6 +44,9 @@ class DiscoverConfig:
     starts: tuple[float, ...] = (1e4, 1e5)  # starting stiffnesses of the base calibration (Pa)
     iterations: int = 25  # at most, per calibration (Levenberg–Marquardt stops when converged)
     warm: float = 0.4  # every calibration first fits this leading fraction of the window (0: off)
+    # the base is also calibrated from the best point of a coarse grid of materials and learned effect parameters
+    # where the window holds more than a free flight (calibrate.scanned_start)
+    scan: bool = True
     finalists: int = 3  # candidates refitted per round, by screen gain
     min_gain: float = 0.02  # screen gain below which a candidate is not refitted
     # ... and, beyond those, the candidates whose residual signature explains the residual best (at least this
@@ -867,17 +870,26 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
     t0 = time.monotonic()
     sigma = obs.noise if obs.noise is not None else noise_floor(obs)
     base_model = PhysicsModel(obs, spec, learn, res=cfg.res)
-    log(f"calibrating the base model ({obs.points} points, {obs.bodies} bodies, starts {list(cfg.starts)})")
-    fits = []
-    for E in cfg.starts:
-        th = base_model.initial(E=E)
+    scan = cfg.scan and base_model.flight_frames() < obs.observed
+    also = f" and from a scan (the flight ends at frame {base_model.flight_frames()})" if scan else ""
+    log(f"calibrating the base model ({obs.points} points, {obs.bodies} bodies, starts {list(cfg.starts)}{also})")
+    fits, names = [], []
+    for E in (*cfg.starts, "scan") if scan else cfg.starts:
+        th = base_model.initial(E=cfg.starts[0] if E == "scan" else E)
         for name, value in (start or {}).items():
             i = base_model.index(name)
             if base_model.knobs[i].kind in ("E", "nu"):
                 raise CausalGSError(f"start: '{name}' is a material; starting stiffnesses are DiscoverConfig.starts")
             th[i] = base_model.knobs[i].internal(float(value))
-        fits.append(journal.calibrate(f"base/{E:.3g}", base_model, th, iterations=cfg.iterations, warm=cfg.warm))
+        if E == "scan":
+            fits.append(journal.calibrate("base/scan", base_model, th, iterations=cfg.iterations, warm=cfg.warm,
+                                          scan=True))  # fmt: skip
+            names.append("scan")
+        else:
+            fits.append(journal.calibrate(f"base/{E:.3g}", base_model, th, iterations=cfg.iterations, warm=cfg.warm))
+            names.append(f"{E:.3g}")
     fits = unpin(journal, "base", base_model, fits, cfg)
+    names += ["unpinned"] * (len(fits) - len(names))
     base = _state(base_model, min(fits, key=lambda f: f.loss))
     weights = None
     if cfg.weigh:
@@ -902,7 +914,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         # how finely the points give the bodies' extent, where the lens lets discovery use it (extent_rms)
         "shape_resolution_m": obs.shape_resolution if obs.mix is not None else 0.0,
         "base": {"spec": spec, "learn": list(learn), "values": base_model.values(base.fit.theta),
-                 "starts": {f"{f.start:.3g}": f.loss for f in fits}},
+                 "starts": {n: f.loss for n, f in zip(names, fits, strict=True)}},
         # the residual weights where rigid tracks cannot follow the bodies (track_error), or None
         "weights": weights,
     }

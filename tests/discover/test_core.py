@@ -99,7 +99,7 @@ def test_the_initial_twist_takes_the_whole_flight_before_a_contact():
     x[30:] = x[29:30] + (x[30:] - _flight(frames=48, fps=120.0).x[30:])  # lands at frame 29 and stays (the noise kept)
     obs = replace(obs, x=x, noise=0.002)
     m = PhysicsModel(obs, "gravity;walls", res=16)
-    k = m._flight_frames()
+    k = m.flight_frames()
     assert 28 <= k <= 31, k
     flight, five = m.fitted_twists(), m.fitted_twists(TWIST_FRAMES)
     spin = lambda tw: float(np.linalg.norm(tw[0, 3:]))  # noqa: E731 (the truth has none)
@@ -773,6 +773,45 @@ def _thrown_cube(spec: str, centre, velocity, observed: int, frames: int = 16, v
     with torch.no_grad():
         obs.x[1:] = truth.rollout(th).numpy()
     return obs, truth, th
+
+
+def test_a_scan_starts_a_bounce_at_the_best_point_of_its_grid(monkeypatch):
+    """From a stiff, nearly incompressible start (the truth's throw) with the friction and the ground a unit off,
+    the scan rolls out every point of its grid once and returns the best: the truth's own point (30 kPa, ν 0.3,
+    μ 0.3, the ground at 0), where the error vanishes; the throw is the start's."""
+    import itertools
+
+    from causalgs.discover import calibrate as C
+    from causalgs.discover.model import PhysicsModel
+
+    spec = "gravity;ground:mu=0.3;walls"
+    obs, truth, th_true = _thrown_cube(spec, (0.0, 0.0, 0.1), (0.4, 0.0, -1.0), 10, frames=14)
+    m = PhysicsModel(obs, spec, ("ground.mu", "ground.d"), res=16)
+    frames = C.fit_frames(m)
+    start = m.initial(E=3e5, nu=0.45, effects={"ground.mu": 0.6, "ground.d": 0.01})
+    for i, k in enumerate(truth.knobs):  # the truth's throw
+        if k.kind in ("u", "w"):
+            start[m.index(k.name)] = th_true[i]
+    calls = []
+    mse = C.mse
+    monkeypatch.setattr(C, "mse", lambda *a: calls.append(1) or mse(*a))
+    got = C.scanned_start(m, start, frames)
+    assert len(calls) == len(C.SCAN_E) * len(C.SCAN_NU) * 9  # one rollout a grid point
+    v = m.values(got)
+    assert math.isclose(v["cube.E"], 3e4, rel_tol=1e-6) and math.isclose(v["cube.nu"], 0.3, rel_tol=1e-6), v
+    assert math.isclose(v["ground.mu"], 0.3, rel_tol=1e-6) and abs(v["ground.d"]) < 1e-9, v
+    with torch.no_grad():
+        best = float(mse(m, got, frames))
+        assert best < 1e-6 < float(mse(m, start, frames)), best
+        # the plain reference: no other grid point is better
+        for E, nu, mu, d in itertools.product(C.SCAN_E, C.SCAN_NU, (0.3, 0.6, 0.9), (0.0, 0.01, 0.02)):
+            th = start.clone()
+            th[m.index("cube.E")], th[m.index("cube.nu")] = m.E_internal(E), m.nu_internal(nu)
+            th[m.index("ground.mu")] = m.knobs[m.index("ground.mu")].internal(mu)
+            th[m.index("ground.d")] = m.knobs[m.index("ground.d")].internal(d)
+            assert float(mse(m, th, frames)) >= best - 1e-12
+    throw = [i for i, k in enumerate(m.knobs) if k.kind in ("u", "w")]
+    assert torch.equal(got[throw], start[throw])
 
 
 def test_lens_floor_keeps_point_noise_and_removes_rigid_misfit():
