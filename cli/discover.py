@@ -57,7 +57,9 @@ def _starts(text: str) -> tuple[float, ...]:
                    "120 fps rebounds to 0.21 m on 20 cells and to 0.10 m on 32 or 43 (the truth's spacing), so a "
                    "coarse model cannot reproduce a landing whatever its parameters.  [default: 0]")  # fmt: skip
 @click.option("--starts", default="1e4,1e5", show_default=True,
-              help="Starting stiffnesses (Pa) of the base calibration, comma-separated.")
+              help="Starting stiffnesses (Pa) of the base calibration, comma-separated. Where the fit window "
+                   "holds a contact, the base is also calibrated from the best point of a coarse scan of the "
+                   "materials and the learned effect parameters (a bounce has many basins).")
 @click.option("--iterations", type=click.IntRange(1, 500), default=25, show_default=True,
               help="Most Levenberg–Marquardt iterations per calibration (it stops when converged).")
 @click.option("--tracking", type=click.Choice(["refined", "kinematic"]), default="refined", show_default=True,
@@ -99,8 +101,9 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     observed window, refined frame by frame to the images (--tracking), bodies from its motion segmentation, the
     last quarter held out; the base model is the run's physics) or an observation file (.npz: measured
     trajectories of material points and how many leading frames may be fitted; the rest are held out and only
-    scored). The model (--effects) is calibrated on the fit window from
-    several stiffnesses; the disagreement is mapped by frame, body and contact state; every candidate of the
+    scored). The model (--effects) is calibrated on the fit window from several stiffnesses (and, past a
+    contact, from a coarse scan), its throw started from the whole free flight; the disagreement is mapped by
+    frame, body and contact state; every candidate of the
     catalogue is screened with one sensitivity rollout; the best are refitted jointly with the base through the
     differentiable MPM (through a run's rigid lens, --weigh weighs residuals down where the bodies deform); a gate
     accepts one only if the held-out error drops, BIC (with an effective sample size)
