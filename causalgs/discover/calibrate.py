@@ -18,6 +18,7 @@ bounce).
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -183,33 +184,29 @@ def scanned_start(model: PhysicsModel, theta0: torch.Tensor, frames) -> torch.Te
     and E = 7.8 kPa (truth 28.5 kPa); the scan's best point (E = 30 kPa, ν = 0.3, the ground a centimetre under the
     fit's, μ = 0.4; 0.267 cm² before any step) calibrated to 0.037 cm² at E = 29.6 kPa, ν = 0.29, μ = 0.29 (truth
     0.3) and the ground 1.2 mm low, as a start at the truth did; the scan's second best went back to 0.173."""
-    import itertools
-
     frames = list(frames)
     mats = [(E, nu) for E in SCAN_E for nu in SCAN_NU if model.E_range[0] <= E <= model.E_range[1]
             and model.nu_range[0] <= nu <= model.nu_range[1]]  # fmt: skip
-    effects = [i for i, k in enumerate(model.knobs) if k.kind == "effect"]
-    offsets = list(itertools.product((0.0, -1.0, 1.0), repeat=len(effects)))
-    if len(mats) * len(offsets) > SCAN_MAX:
-        offsets = [tuple(0.0 for _ in effects)]
+    start = model.values(theta0)
+    effects, levels = [], []
+    for i, k in enumerate(model.knobs):
+        if k.kind == "effect":  # its start, and a unit either side where that stays inside its bounds
+            v = start[k.name]
+            effects.append(i)
+            levels.append([v] + [w for w in (v - k.scale, v + k.scale) if (k.lower is None or w > k.lower)
+                                 and (k.upper is None or w < k.upper)])  # fmt: skip
+    grid = list(itertools.product(*levels))
+    if len(mats) * len(grid) > SCAN_MAX:
+        grid = grid[:1]
     E_idx = [i for i, k in enumerate(model.knobs) if k.kind == "E"]
     nu_idx = [i for i, k in enumerate(model.knobs) if k.kind == "nu"]
-    start = model.values(theta0)
     best, best_loss = theta0, math.inf
-    for (E, nu), off in itertools.product(mats, offsets):
+    for (E, nu), point in itertools.product(mats, grid):
         th = theta0.detach().clone()
-        for i in E_idx:
-            th[i] = model.E_internal(E)
-        for i in nu_idx:
-            th[i] = model.nu_internal(nu)
-        for i, o in zip(effects, off, strict=True):
-            k = model.knobs[i]
-            v = start[k.name] + o * k.scale
-            if k.lower is not None and v <= k.lower:
-                continue  # a step below a bound is the bound's side: the start covers it
-            if k.upper is not None and v >= k.upper:
-                continue
-            th[i] = k.internal(v)
+        th[E_idx] = model.E_internal(E)
+        th[nu_idx] = model.nu_internal(nu)
+        for i, v in zip(effects, point, strict=True):
+            th[i] = model.knobs[i].internal(v)
         try:
             with torch.no_grad():
                 loss = float(mse(model, th, frames))

@@ -231,14 +231,8 @@ class PhysicsModel:
         0.01; calibrated from there, the base stayed in a tilted landing whose weak bounce it made up for with
         the ground 2 cm high."""
         obs = self.obs
-        if frames is None:
-            k = self.flight_frames()
-        else:
-            k = max(3, min(frames, obs.observed))
-        t = obs.times[:k] - obs.times[0]
-        A = np.stack([np.ones_like(t), t, 0.5 * t**2], axis=1)
-        coef, *_ = np.linalg.lstsq(A, obs.x[:k].reshape(k, -1), rcond=None)
-        v = coef[1].reshape(-1, 3)
+        k = self.flight_frames() if frames is None else max(3, min(frames, obs.observed))
+        v = self._parabolas(k)[0][1].reshape(-1, 3)
         out = np.zeros((obs.bodies, 6))
         c = self.centroids.double().numpy()
         for b in range(obs.bodies):
@@ -248,20 +242,25 @@ class PhysicsModel:
             out[b] = sol
         return out
 
+    def _parabolas(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The least-squares parabola of every coordinate's first ``k`` positions: its coefficients [3, P·3] (the
+        position, the velocity at t = 0, the acceleration) and the RMS over the points of what it leaves per frame
+        [k]."""
+        obs = self.obs
+        t = obs.times[:k] - obs.times[0]
+        A = np.stack([np.ones_like(t), t, 0.5 * t**2], axis=1)
+        y = obs.x[:k].reshape(k, -1)
+        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+        return coef, np.sqrt(((A @ coef - y) ** 2).mean(1))
+
     def flight_frames(self) -> int:
         """The most first frames of the fit window over which a parabola per point stays within ``TWIST_FIT``
         times the noise of every point's path, frame by frame (RMS over the points); at least ``TWIST_FRAMES``."""
         obs = self.obs
-        k0 = min(TWIST_FRAMES, obs.observed)
         sigma = obs.noise if obs.noise is not None else noise_floor(obs)
-        best = k0
-        for k in range(k0 + 1, obs.observed + 1):
-            t = obs.times[:k] - obs.times[0]
-            A = np.stack([np.ones_like(t), t, 0.5 * t**2], axis=1)
-            y = obs.x[:k].reshape(k, -1)
-            coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-            per_frame = np.sqrt(((A @ coef - y) ** 2).mean(1))
-            if per_frame.max() > TWIST_FIT * max(sigma, 1e-9):
+        best = min(TWIST_FRAMES, obs.observed)
+        for k in range(best + 1, obs.observed + 1):
+            if self._parabolas(k)[1].max() > TWIST_FIT * max(sigma, 1e-9):
                 break
             best = k
         return best

@@ -870,24 +870,27 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
     t0 = time.monotonic()
     sigma = obs.noise if obs.noise is not None else noise_floor(obs)
     base_model = PhysicsModel(obs, spec, learn, res=cfg.res)
-    scan = cfg.scan and base_model.flight_frames() < obs.observed
-    also = f" and from a scan (the flight ends at frame {base_model.flight_frames()})" if scan else ""
+    flight = base_model.flight_frames()
+    scan = cfg.scan and flight < obs.observed
+    also = f" and from a scan (the flight ends at frame {flight})" if scan else ""
     log(f"calibrating the base model ({obs.points} points, {obs.bodies} bodies, starts {list(cfg.starts)}{also})")
-    fits, names = [], []
-    for E in (*cfg.starts, "scan") if scan else cfg.starts:
-        th = base_model.initial(E=cfg.starts[0] if E == "scan" else E)
+
+    def start_at(E: float) -> torch.Tensor:
+        th = base_model.initial(E=E)
         for name, value in (start or {}).items():
             i = base_model.index(name)
             if base_model.knobs[i].kind in ("E", "nu"):
                 raise CausalGSError(f"start: '{name}' is a material; starting stiffnesses are DiscoverConfig.starts")
             th[i] = base_model.knobs[i].internal(float(value))
-        if E == "scan":
-            fits.append(journal.calibrate("base/scan", base_model, th, iterations=cfg.iterations, warm=cfg.warm,
-                                          scan=True))  # fmt: skip
-            names.append("scan")
-        else:
-            fits.append(journal.calibrate(f"base/{E:.3g}", base_model, th, iterations=cfg.iterations, warm=cfg.warm))
-            names.append(f"{E:.3g}")
+        return th
+
+    fits = [journal.calibrate(f"base/{E:.3g}", base_model, start_at(E), iterations=cfg.iterations, warm=cfg.warm)
+            for E in cfg.starts]  # fmt: skip
+    names = [f"{E:.3g}" for E in cfg.starts]
+    if scan:
+        fits.append(journal.calibrate("base/scan", base_model, start_at(cfg.starts[0]), iterations=cfg.iterations,
+                                      warm=cfg.warm, scan=True))  # fmt: skip
+        names.append("scan")
     fits = unpin(journal, "base", base_model, fits, cfg)
     names += ["unpinned"] * (len(fits) - len(names))
     base = _state(base_model, min(fits, key=lambda f: f.loss))
