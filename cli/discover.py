@@ -199,7 +199,12 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
 @click.option("--level", type=click.Choice(["trajectory", "video"]), default="trajectory", show_default=True,
               help="trajectory: simulated particle tracks with noise (minutes a case); video: a rendered video, a "
                    "fit and discovery on the run, end to end (about 20 minutes a flight case on 2 cores).")
-def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, jobs, rigid_tracks, lens, level):
+@click.option("--merge", "merge", multiple=True, type=click.Path(exists=True, file_okay=False, path_type=Path),
+              help="Video level: run nothing; collect the rows of these tables (repeat the option; one table run in "
+                   "pieces with --only and --first-seed) into --out, each row taken only where its video was "
+                   "rendered as the case is defined now, a later table's row replacing an earlier one.")
+def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, jobs, rigid_tracks, lens, level,
+                   merge):
     """Reproduce the hidden-effect table: for every effect of the catalogue, a tossed block simulated with it and
     a model without it; negative controls; an effect outside the catalogue.
 
@@ -218,6 +223,16 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
     from causalgs import _ti
     from causalgs.discover.search import DiscoverConfig
 
+    if merge:
+        if level != "video":
+            raise CausalGSError("--merge collects video tables: add --level video")
+        from causalgs.discover.table import summary
+        from causalgs.discover.video_table import merge as merge_tables
+
+        rows = merge_tables(out, merge, log=_console_log())
+        click.echo(json.dumps(summary(rows)))
+        click.echo(f"Wrote {out / 'table.md'} ({len(rows)} rows)")
+        return
     if level == "video" and rigid_tracks:
         raise CausalGSError("--rigid-tracks is for --level trajectory: video tracks have a lens of their own (--lens)")
     if level == "trajectory" and lens != "auto":

@@ -324,12 +324,54 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(L + table.goals(rows)) + "\n"
 
 
-def _write(out: Path, rows: list[dict], cfg: VideoTableConfig) -> None:
+def merge(out, sources, log=None) -> list[dict]:
+    """Collect the rows of video tables run in pieces (``--only``, ``--first-seed``, other sessions or machines)
+    into ``out/table.json`` and ``out/table.md``, running nothing. A row is taken only where its case's video was
+    rendered as the case is defined now (``data/synth.json`` in its folder: the same effects and frames), so that a
+    table never mixes a scene since changed (a landing of 96 frames, a plasticity at another yield stress) with
+    the current one; a later source's row replaces an earlier one of the same case and seed. Every row keeps the
+    folder it came from (``folder``)."""
+    log = log or (lambda msg: None)
+    out = Path(out)
+    rows: dict[tuple[str, int], dict] = {}
+    for src in map(Path, sources):
+        saved = read_json(src / "table.json", "table")
+        if saved.get("level", "trajectory") != "video":
+            raise CausalGSError(f"{src / 'table.json'} holds a table of the {saved.get('level', 'trajectory')} "
+                                f"level, not of the video level")  # fmt: skip
+        for r in saved.get("rows", []):
+            case = BY_NAME.get(r.get("case"))
+            folder = src / f"{_slug(r.get('case', ''))}-s{r.get('seed')}"
+            stamp = folder / "data" / "synth.json"
+            why = None
+            if case is None:
+                why = "no such case now"
+            elif not stamp.is_file():
+                why = f"no {stamp}"
+            else:
+                s = read_json(stamp, "synth stamp")
+                if (s.get("effects"), s.get("frames")) != (case.scene, case.frames):
+                    why = (f"rendered with '{s.get('effects')}' over {s.get('frames')} frames, the case is now "
+                           f"'{case.scene}' over {case.frames}")  # fmt: skip
+            if why:
+                log(f"left out {r.get('case')}, seed {r.get('seed')} of {src}: {why}")
+                continue
+            rows[(r["case"], r["seed"])] = {**r, "folder": str(folder)}
+    out.mkdir(parents=True, exist_ok=True)
+    rows = list(rows.values())
+    _write(out, rows, {"merged_from": [str(s) for s in sources]})
+    return rows
+
+
+def _write(out: Path, rows: list[dict], cfg: VideoTableConfig | dict) -> None:
     from causalgs.discover.report import finite
 
     rows = sorted(rows, key=lambda r: ([c.name for c in CASES].index(r["case"]), r["seed"]))
-    config = dataclasses.asdict(cfg)
-    config["only"] = list(cfg.only)
+    if isinstance(cfg, dict):
+        config = cfg
+    else:
+        config = dataclasses.asdict(cfg)
+        config["only"] = list(cfg.only)
     write_json(out / "table.json", finite({"level": "video", "rows": rows, "summary": summary(rows),
                                            "config": json.loads(json.dumps(config))}))  # fmt: skip
     write_text(out / "table.md", markdown(rows))

@@ -169,3 +169,46 @@ def test_a_stopped_fit_resumes_and_other_tables_are_refused(tmp_path, monkeypatc
     (traj / "table.json").write_text(json.dumps({"rows": []}))
     with pytest.raises(CausalGSError, match="of the trajectory level, not of the video level"):
         V.run_video_table(traj, cfg)
+
+
+def test_tables_run_in_pieces_merge_into_one(tmp_path, monkeypatch):
+    """`--merge`: the rows of several tables in one, each taken only where its video is the case's current scene,
+    a later table's row replacing an earlier one of the same case and seed; nothing runs."""
+    calls = []
+    _recorders(monkeypatch, calls)
+    a, b, merged = tmp_path / "a", tmp_path / "b", tmp_path / "all"
+    V.run_video_table(a, V.VideoTableConfig(only=("linear_drag", "control: flight", "friction")))
+    V.run_video_table(b, V.VideoTableConfig(only=("linear_drag", "control: flight"), first_seed=1))
+    V.run_video_table(b, V.VideoTableConfig(only=("control: flight",)))
+    for folder in (a / "linear-drag-s0", a / "friction-s0", b / "linear-drag-s1", b / "control-flight-s1"):
+        assert (folder / "data" / "synth.json").is_file()  # the stamp every rendered case leaves
+    # a case since rendered otherwise (here: a landing of 96 frames) is left out, and one without a stamp
+    stamp = a / "friction-s0" / "data" / "synth.json"
+    stamp.write_text(json.dumps({**json.loads(stamp.read_text()), "frames": 96}))
+    (a / "linear-drag-s0" / "data" / "synth.json").unlink()
+    # the row of control: flight, seed 0 in b replaces a's
+    saved = json.loads((b / "table.json").read_text())
+    for r in saved["rows"]:
+        if (r["case"], r["seed"]) == ("control: flight", 0):
+            r["seconds"] = 123.0
+    (b / "table.json").write_text(json.dumps(saved))
+    said = []
+    n = len(calls)
+    rows = V.merge(merged, [a, b], log=said.append)
+    assert len(calls) == n  # nothing ran
+    got = {(r["case"], r["seed"]): r for r in rows}
+    assert set(got) == {("control: flight", 0), ("linear_drag", 1), ("control: flight", 1)}
+    assert got[("control: flight", 0)]["seconds"] == 123.0
+    assert got[("control: flight", 0)]["folder"] == str(b / "control-flight-s0")
+    assert any("friction, seed 0" in m and "96 frames" in m for m in said)
+    assert any("linear_drag, seed 0" in m and "no " in m for m in said)
+    table = json.loads((merged / "table.json").read_text())
+    assert table["level"] == "video" and table["summary"]["runs"] == 3
+    assert table["config"]["merged_from"] == [str(a), str(b)]
+    assert table["summary"]["controls_no_effect"] == 1.0
+    assert "| linear_drag | 1 | ✓ discovered |" in (merged / "table.md").read_text()
+    traj = tmp_path / "traj"
+    traj.mkdir()
+    (traj / "table.json").write_text(json.dumps({"rows": []}))
+    with pytest.raises(CausalGSError, match="of the trajectory level, not of the video level"):
+        V.merge(merged, [traj])
