@@ -66,14 +66,16 @@ def _starts(text: str) -> tuple[float, ...]:
               help="For a run: the measured motion. 'refined': the run's tracked motion corrected frame by frame to "
                    "that frame's images (one rigid correction per motion pattern; kept in RUN/tracks.npz, about ten "
                    "CPU-seconds a frame); 'kinematic': the run's velocity field as fitted, which smooths impacts.")
-@click.option("--lens", type=click.Choice(["auto", "rigid", "affine"]), default="auto", show_default=True,
+@click.option("--lens", type=click.Choice(["auto", "rigid", "affine", "bent"]), default="auto", show_default=True,
               help="For refined tracks of a run: what they move each motion pattern by, and so what the simulation "
                    "is compared through. 'rigid': a rotation and a shift; 'affine': also a stretch (a body squashed "
-                   "for good, as by plastic flow); 'auto': both are refined (RUN/tracks.npz, "
+                   "for good, as by plastic flow); 'bent': also a second-order bend of each body (a foot spread on "
+                   "the ground wider than the top); 'auto': rigid and affine are refined (RUN/tracks.npz, "
                    "RUN/tracks-affine.npz), and the stretching tracks are taken only where they match held-out "
                    "cameras better once the bodies have come to their final shape: over the last quarter of the "
                    "observed frames, by a median 0.25 dB or more and on three quarters of them, as for a body "
-                   "deformed for good.")  # fmt: skip
+                   "deformed for good; then, by the same rule, bent tracks (RUN/tracks-bent.npz) over "
+                   "those.")  # fmt: skip
 @click.option("--split/--no-split", default=True, show_default=True,
               help="For refined tracks of a run: also refine them from each half of the training cameras over the "
                    "fit window (RUN/tracks-half0.npz, -half1; 1.5x one refinement's time) and credit the "
@@ -193,7 +195,7 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
               help="Trajectory level: observe each body through its best rigid motion, as tracks from video do, and "
                    "discover through that lens: what rigid tracks hide (a wobble, a squash) without the errors of "
                    "tracking images.")
-@click.option("--lens", type=click.Choice(["auto", "rigid", "affine"]), default="auto", show_default=True,
+@click.option("--lens", type=click.Choice(["auto", "rigid", "affine", "bent"]), default="auto", show_default=True,
               help="Video level: the refined tracks' lens, as `causalgs discover --lens` (auto: the stretching tracks "
                    "where held-out cameras ask for them).")
 @click.option("--level", type=click.Choice(["trajectory", "video"]), default="trajectory", show_default=True,

@@ -41,10 +41,11 @@ def calibration_options(spec: str, learn, cfg, start: dict | None = None) -> dic
             "iterations": cfg.iterations, "warm": cfg.warm, "weigh": cfg.weigh}  # fmt: skip
 
 
-def fingerprint(options: dict, x: np.ndarray, mix: np.ndarray | None = None, lens_kind: str = "rigid") -> str:
+def fingerprint(options: dict, x: np.ndarray, mix: np.ndarray | None = None, lens_kind: str = "rigid",
+                bend: np.ndarray | None = None) -> str:  # fmt: skip
     """A digest of the run's options, its measurement (positions at full precision, and the lens the simulation is
-    compared through, ``Observation.mix`` and ``lens_kind``) and the causalgs version (a calibration of another
-    version may mean other things by the same θ)."""
+    compared through, ``Observation.mix``, ``lens_kind`` and ``bend``) and the causalgs version (a calibration of
+    another version may mean other things by the same θ)."""
     from causalgs import __version__
 
     h = hashlib.sha256(json.dumps({"options": options, "version": __version__}, sort_keys=True).encode())
@@ -54,6 +55,9 @@ def fingerprint(options: dict, x: np.ndarray, mix: np.ndarray | None = None, len
         h.update(np.ascontiguousarray(mix, dtype=np.float64).tobytes())
         if lens_kind != "rigid":
             h.update(lens_kind.encode())
+        if bend is not None:
+            h.update(b"bend")
+            h.update(np.ascontiguousarray(bend, dtype=np.int64).tobytes())
     return h.hexdigest()[:16]
 
 

@@ -118,6 +118,7 @@ class PhysicsModel:
         self.body = torch.as_tensor(obs.body)
         self._mix = None if obs.mix is None else torch.as_tensor(obs.mix, dtype=torch.float64)
         self._vol = torch.as_tensor(obs.vol, dtype=torch.float64)
+        self._bend = None if obs.bend is None else torch.as_tensor(obs.bend, dtype=torch.long)
         knobs = []
         for b in range(obs.bodies):
             knobs += [Knob(f"{obs.names[b]}.E", "E", b), Knob(f"{obs.names[b]}.nu", "nu", b)]
@@ -347,4 +348,6 @@ class PhysicsModel:
         if self.obs.mix is None:
             return x
         project = LENSES[self.obs.lens_kind]
+        if self._bend is not None:  # affine tracks that also bend each body
+            return project(x, self.x0.double(), self._mix, self._vol, at=self.points0.double(), bend=self._bend)
         return project(x, self.x0.double(), self._mix, self._vol, at=self.points0.double())

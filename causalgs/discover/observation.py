@@ -58,6 +58,9 @@ class Observation:
     # what the tracks move each pattern by: "rigid" (:func:`rigid_projection`) or "affine" (:func:`affine_projection`,
     # tracks that also stretch each pattern)
     lens_kind: str = "rigid"
+    # [P] affine tracks with a bend (:class:`~causalgs.model.refine.RefineConfig` ``bend``): the body whose
+    # second-order displacement moves each point, which the lens fits too (:func:`affine_projection`); None: no bend
+    bend: np.ndarray | None = None
     # (m) how finely the points describe each body's extent: a face is known to ± half of it (a fitted run: the
     # voxel its particles filled the bodies at); 0: the points are the material itself (a simulation's particles)
     shape_resolution: float = 0.0
@@ -122,6 +125,12 @@ class Observation:
                 raise CausalGSError("observation: every point's 'mix' weights must sum to 1")
         if self.lens_kind not in LENSES:
             raise CausalGSError(f"observation: lens '{self.lens_kind}' is not one of {', '.join(LENSES)}")
+        if self.bend is not None:
+            self.bend = np.asarray(self.bend).reshape(-1)
+            if self.mix is None or self.lens_kind != "affine":
+                raise CausalGSError("observation: a bend ('bend') belongs to an affine lens ('mix', lens 'affine')")
+            if len(self.bend) != P or not np.issubdtype(self.bend.dtype, np.integer) or (self.bend < 0).any():
+                raise CausalGSError(f"observation: 'bend' must hold {P} body numbers >= 0, one a point")
         if self.drift is not None:
             self.drift = np.asarray(self.drift, dtype=np.float64).reshape(-1)
             if len(self.drift) != T or not (np.isfinite(self.drift).all() and (self.drift >= 0).all()):
@@ -166,6 +175,8 @@ class Observation:
         if self.mix is not None:
             extra["mix"] = self.mix
             extra["lens_kind"] = np.array(self.lens_kind)
+        if self.bend is not None:
+            extra["bend"] = self.bend
         if self.clean is not None:
             extra["clean"] = self.clean
         if self.drift is not None:
@@ -212,7 +223,7 @@ def load_observation(path) -> Observation:
             names=[str(s) for s in d["names"]] if "names" in d else [],
             truth=json.loads(str(d["truth_json"])) if "truth_json" in d else None, mix=d.get("mix"),
             lens_kind=str(d.get("lens_kind", "rigid")), shape_resolution=float(d.get("shape_resolution", 0.0)),
-            clean=d.get("clean"), drift=d.get("drift"),
+            clean=d.get("clean"), drift=d.get("drift"), bend=d.get("bend"),
         )  # fmt: skip
     except CausalGSError as e:
         raise CausalGSError(f"{path}: {e}") from None
@@ -291,13 +302,16 @@ def rigid_projection(x: torch.Tensor, x0: torch.Tensor, mix: torch.Tensor, vol: 
 
 
 def affine_projection(x: torch.Tensor, x0: torch.Tensor, mix: torch.Tensor, vol: torch.Tensor,
-                      at: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
+                      at: torch.Tensor | None = None, bend: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
     """:func:`rigid_projection` with an affine motion per pattern: for every frame and pattern k the map
     x ≈ A_k (x0 − c0_k) + c_k that best fits the points' motion in the least-squares sense weighted by mix[:, k]·vol
     (A_k = H_k M_k⁻¹, H_k the weighted cross-covariance and M_k the rest shape's weighted covariance), and every
     point placed at Σ_k mix_ik (A_k (at_i − c0_k) + c_k). What tracks that stretch each pattern see
     (:class:`~causalgs.model.refine.RefineConfig` ``stretch``): a squash is compared, a wobble finer than one
-    strain per pattern is not. Differentiable in ``x``."""
+    strain per pattern is not. Differentiable in ``x``. ``bend`` [P]: the tracks also bend each body (its points'
+    body numbers): see :func:`bent_projection`."""
+    if bend is not None:
+        return bent_projection(x, x0, mix, vol, bend, at)
     w = mix * vol[:, None]  # [P, K]
     W = w.sum(0)  # [K]
     c0 = (w.T @ x0) / W[:, None]  # [K, 3]
@@ -313,6 +327,46 @@ def affine_projection(x: torch.Tensor, x0: torch.Tensor, mix: torch.Tensor, vol:
         d0 = at[:, None, :] - c0[None]
     fit = torch.einsum("tkij,pkj->tpki", A, d0) + c[:, None]  # [T, P, K, 3]
     return torch.einsum("pk,tpki->tpi", mix, fit)
+
+
+def bent_projection(x: torch.Tensor, x0: torch.Tensor, mix: torch.Tensor, vol: torch.Tensor, bend: torch.Tensor,
+                    at: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
+    """What affine tracks with a bend see (:class:`~causalgs.model.refine.RefineConfig` ``bend``): the motion of
+    their model, x ≈ Σ_k mix_k (A_k (x0 − c0_k) + c_k) + P_b φ((x0 − c_b)/r_b) (b = ``bend``, the point's body,
+    c_b and r_b its rest centroid and RMS radius; φ the six second-order monomials of
+    :func:`causalgs.model.refine.bend_basis`), fitted to the points'
+    positions jointly for every frame by least squares weighted by ``vol``, and evaluated at ``at`` (default x0).
+    The model is linear in its coefficients, so the projection is one linear map of ``x`` for every frame (and
+    differentiable in it): a body that tapers or bulges (a foot spread on the ground) is compared, a deformation
+    finer than that is not."""
+    from causalgs.model.refine import bend_basis
+
+    at = x0 if at is None else at
+    body = torch.as_tensor(bend, dtype=torch.long)
+    B = int(body.max()) + 1
+    W = mix * vol[:, None]
+    c0 = (W.T @ x0) / W.sum(0).clamp_min(1e-300)[:, None]  # [K, 3]
+    one = torch.nn.functional.one_hot(body, B).to(x0.dtype)  # [P, B]
+    wb = one * vol[:, None]
+    cb = wb.T @ x0 / wb.sum(0).clamp_min(1e-300)[:, None]  # [B, 3]
+    rb = ((wb * ((x0[:, None, :] - cb[None]) ** 2).sum(-1)).sum(0) / wb.sum(0).clamp_min(1e-300)).sqrt()
+    rb = rb.clamp_min(1e-6)
+
+    def design(p):
+        lin = torch.cat([mix[:, :, None] * (p[:, None, :] - c0[None]), mix[:, :, None]], -1)  # [P, K, 4]
+        phi = bend_basis(p, cb, rb, body)[0]  # [P, 6]
+        quad = one[:, :, None] * phi[:, None, :]  # [P, B, 6]
+        return torch.cat([lin.reshape(len(p), -1), quad.reshape(len(p), -1)], 1)
+
+    root = vol.sqrt()[:, None]
+    with torch.no_grad():  # the map does not depend on x; the projection is linear in it
+        # coefficients no point pins down (a flat body has no bend across it; a pattern's blend weight that varies
+        # linearly in space makes a square of the affine part) are left out: the pseudo-inverse
+        fit = torch.linalg.pinv(root * design(x0), rtol=1e-10)  # [m, P]
+        ev = design(at)
+    T, P = x.shape[:2]
+    coef = fit @ (root * x.permute(1, 0, 2).reshape(P, T * 3))  # [m, T·3]
+    return (ev @ coef).reshape(P, T, 3).permute(1, 0, 2)
 
 
 LENSES = {"rigid": rigid_projection, "affine": affine_projection}

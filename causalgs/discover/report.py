@@ -299,6 +299,10 @@ def markdown(report: dict) -> str:
                          "through the same lens: every rollout is replaced by the affine motion per pattern that fits "
                          "it best. A bounce, a slide, a spin, a drag and a body's squash or stretch are compared; a "
                          "deformation finer than one strain per pattern is not.")  # fmt: skip
+                if tr.get("bend_bodies"):
+                    L.append(f"They also bend each of {tr['bend_bodies']} body(ies) by a second-order displacement "
+                             "(a foot spread on the ground wider than the top, which one strain per pattern cannot "
+                             "show), and the lens fits that too.")  # fmt: skip
             else:
                 L.append(f"The tracks move each of the run's {n} motion pattern(s) rigidly, so the simulation is "
                          "compared through the same lens: every rollout is replaced by the rigid motion per pattern "

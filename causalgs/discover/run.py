@@ -75,7 +75,7 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
     if (out / "report.json").is_file() and not (out / "progress.json").is_file() and not resume:
         raise CausalGSError(f"{out} already holds a discovery report: choose another --out")
     key = fingerprint({**calibration_options(spec, learn, cfg), "box": [obs.lo, obs.hi], "noise": obs.noise}, obs.x,
-                      obs.mix, obs.lens_kind)  # fmt: skip
+                      obs.mix, obs.lens_kind, obs.bend)  # fmt: skip
     journal = Journal(out / "progress.json", key, resume=resume)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "discover.json", options)
@@ -90,7 +90,8 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
     if tracking is not None:
         report["tracking"] = {**tracking, "stray_particles": base.get("stray", 0), "pixel_m": base.get("pixel_m"),
                               "lens_patterns": None if obs.mix is None else int(obs.mix.shape[1]),
-                              "lens": None if obs.mix is None else obs.lens_kind}  # fmt: skip
+                              "lens": None if obs.mix is None else obs.lens_kind,
+                              "bend_bodies": None if obs.bend is None else int(obs.bend.max()) + 1}  # fmt: skip
     report["source"] = str(source)
     report["config"] = options
     if obs.truth is not None:
