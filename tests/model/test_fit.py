@@ -849,24 +849,15 @@ def test_refinement_finds_a_displacement_the_velocity_field_missed(fitted, tmp_p
     assert cached_tracks(run, m, data, tl, quick).key == first.key  # the whole tracks are still there
 
 
-def test_stretching_tracks_follow_a_squash_that_rigid_tracks_cannot(fitted, tmp_path):
-    """Images of the fitted motion itself, with the moving Gaussians of the last observed frame squashed about their
-    centroid (0.7 of their height, 1.2 of their width): the refinement with a stretch per pattern (``stretch``)
-    follows the squash (its positions against the squashed ones) and scores that frame better on held-out cameras
-    than the rigid refinement, which cannot; the tracks say which they are, and are kept apart in the run folder."""
+def _deformed_images(m, data, tl, deform):
+    """The dataset's images re-rendered from the fitted motion itself, the moving Gaussians at frame k moved by
+    ``deform(k, means)`` (None: as fitted; else the new means and the map's Jacobian [N, 3, 3], which carries the
+    covariances)."""
     import dataclasses
-    import shutil
     import types
 
-    from causalgs.model.fit import load_model
-    from causalgs.model.refine import RefineConfig, cached_tracks, refine_tracks
     from causalgs.render.reference import quat_scale_to_cov
 
-    run = tmp_path / "run"
-    shutil.copytree(fitted, run)
-    m, data, tl = load_model(run)
-    n = tl.train_frames
-    F = torch.diag(torch.tensor([1.2, 1.2, 0.7], dtype=torch.float64))
     bg = tuple(float(v) for v in data.background)
     idx = torch.nonzero(m.dynamic).flatten()
 
@@ -877,16 +868,43 @@ def test_stretching_tracks_follow_a_squash_that_rigid_tracks_cannot(fitted, tmp_
             means, quats = m.kinematic(k, frames=[k])
             means, quats = means[0].detach().clone(), quats[0].detach()
             covs = quat_scale_to_cov(quats, torch.exp(m.gaussians.scales)).detach().clone()
-            if k == n - 1:
-                c, Ft = means[idx].mean(0), F.to(means.dtype)
-                means[idx] = (means[idx] - c) @ Ft.T + c
-                covs[idx] = Ft @ covs[idx] @ Ft.T
+            moved = deform(k, means[idx])
+            if moved is not None:
+                means[idx], J = moved
+                covs[idx] = J @ covs[idx] @ J.transpose(1, 2)
             with torch.no_grad():
                 img, _, _ = m.gaussians.render(fr.camera, bg, means=means, covs=covs)
             out.append(dataclasses.replace(fr, rgba=(255 * img.clamp(0, 1).numpy() + 0.5).astype(np.uint8)))
         return out
 
-    seen = types.SimpleNamespace(train=rendered(data.train), val=rendered(data.val), background=data.background)
+    return types.SimpleNamespace(train=rendered(data.train), val=rendered(data.val), background=data.background)
+
+
+def test_stretching_tracks_follow_a_squash_that_rigid_tracks_cannot(fitted, tmp_path):
+    """Images of the fitted motion itself, with the moving Gaussians of the last observed frame squashed about their
+    centroid (0.7 of their height, 1.2 of their width): the refinement with a stretch per pattern (``stretch``)
+    follows the squash (its positions against the squashed ones) and scores that frame better on held-out cameras
+    than the rigid refinement, which cannot; the tracks say which they are, and are kept apart in the run folder."""
+    import dataclasses
+    import shutil
+
+    from causalgs.model.fit import load_model
+    from causalgs.model.refine import RefineConfig, cached_tracks, refine_tracks
+
+    run = tmp_path / "run"
+    shutil.copytree(fitted, run)
+    m, data, tl = load_model(run)
+    n = tl.train_frames
+    F = torch.diag(torch.tensor([1.2, 1.2, 0.7], dtype=torch.float64))
+    idx = torch.nonzero(m.dynamic).flatten()
+
+    def squash(k, x):
+        if k != n - 1:
+            return None
+        c, Ft = x.mean(0), F.to(x.dtype)
+        return (x - c) @ Ft.T + c, Ft.expand(len(x), 3, 3)
+
+    seen = _deformed_images(m, data, tl, squash)
     cfg = RefineConfig(iterations=60, views=2, lr_shift=2e-3)
     rigid = refine_tracks(m, seen, tl, cfg)
     affine = refine_tracks(m, seen, tl, dataclasses.replace(cfg, stretch=True))
@@ -918,11 +936,9 @@ def test_bent_tracks_follow_a_taper_that_stretching_tracks_cannot(fitted, tmp_pa
     with their bend and read back whole."""
     import dataclasses
     import shutil
-    import types
 
     from causalgs.model.fit import load_model
     from causalgs.model.refine import RefineConfig, cached_tracks, refine_tracks
-    from causalgs.render.reference import quat_scale_to_cov
 
     run = tmp_path / "run"
     shutil.copytree(fitted, run)
@@ -936,7 +952,6 @@ def test_bent_tracks_follow_a_taper_that_stretching_tracks_cannot(fitted, tmp_pa
 
     m.mixtures = one_pattern  # the kinematic motion and the refinement alike
     n = tl.train_frames
-    bg = tuple(float(v) for v in data.background)
     idx = torch.nonzero(m.dynamic).flatten()
 
     def taper(x, amp):  # [N, 3] -> the tapered positions and the Jacobian of the map [N, 3, 3]
@@ -953,22 +968,7 @@ def test_bent_tracks_follow_a_taper_that_stretching_tracks_cannot(fitted, tmp_pa
     def amp(k):
         return 0.5 * min(1.0, max(0.0, (k - (n - 4)) / 3))
 
-    def rendered(frames):
-        out = []
-        for fr in frames:
-            k = tl.index(fr)
-            means, quats = m.kinematic(k, frames=[k])
-            means, quats = means[0].detach().clone(), quats[0].detach()
-            covs = quat_scale_to_cov(quats, torch.exp(m.gaussians.scales)).detach().clone()
-            if amp(k) > 0:
-                means[idx], J = taper(means[idx], amp(k))
-                covs[idx] = J @ covs[idx] @ J.transpose(1, 2)
-            with torch.no_grad():
-                img, _, _ = m.gaussians.render(fr.camera, bg, means=means, covs=covs)
-            out.append(dataclasses.replace(fr, rgba=(255 * img.clamp(0, 1).numpy() + 0.5).astype(np.uint8)))
-        return out
-
-    seen = types.SimpleNamespace(train=rendered(data.train), val=rendered(data.val), background=data.background)
+    seen = _deformed_images(m, data, tl, lambda k, x: taper(x, amp(k)) if amp(k) > 0 else None)
     cfg = RefineConfig(iterations=60, views=2, lr_shift=2e-3, stretch=True)
     affine = refine_tracks(m, seen, tl, cfg)
     bent = refine_tracks(m, seen, tl, dataclasses.replace(cfg, bend=True))
