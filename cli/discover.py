@@ -196,8 +196,8 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
                    "discover through that lens: what rigid tracks hide (a wobble, a squash) without the errors of "
                    "tracking images.")
 @click.option("--lens", type=click.Choice(["auto", "rigid", "affine", "bent"]), default="auto", show_default=True,
-              help="Video level: the refined tracks' lens, as `causalgs discover --lens` (auto: the stretching tracks "
-                   "where held-out cameras ask for them).")
+              help="Video level: the refined tracks' lens, as `causalgs discover --lens` (auto: the stretching or "
+                   "bent tracks where held-out cameras ask for them).")
 @click.option("--level", type=click.Choice(["trajectory", "video"]), default="trajectory", show_default=True,
               help="trajectory: simulated particle tracks with noise (minutes a case); video: a rendered video, a "
                    "fit and discovery on the run, end to end (about 20 minutes a flight case on 2 cores).")

@@ -126,7 +126,7 @@ class VideoTableConfig:
     # ... or on the truth's own grid (its box and ``reference_res`` cells), as the trajectory table does: see the
     # module docstring. It replaces ``discover.res``.
     truth_grid: bool = True
-    lens: str = "auto"  # the refined tracks' lens (``causalgs discover --lens``): auto, rigid or affine
+    lens: str = "auto"  # the refined tracks' lens (``causalgs discover --lens``): auto, rigid, affine or bent
 
 
 def plan(cfg: VideoTableConfig) -> list[tuple[str, int]]:
