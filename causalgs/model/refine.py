@@ -293,12 +293,17 @@ def camera_half(frames: list, half: int, views=None) -> list:
 
 
 def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progress=None, floor=None,
-                  half: int | None = None, frames: int | None = None) -> Tracks:  # fmt: skip
+                  half: int | None = None, frames: int | None = None, checkpoint=None) -> Tracks:  # fmt: skip
     """The refinement described in the module docstring, over every observed frame of a fitted ``model`` with its
     dataset ``data`` and ``timeline``; ``progress(done, total)`` after every frame. ``floor``: the plane (n, d)
     that ``cfg.ground`` keeps the moving Gaussians above (None: :func:`visible_floor`). ``half`` 0 or 1: fitted to
     that half of each frame's training cameras only (:func:`camera_half`; None: all of them), for
-    :func:`split_noise`. ``frames``: only the first so many observed frames (None: all)."""
+    :func:`split_noise`. ``frames``: only the first so many observed frames (None: all).
+
+    ``checkpoint``: a file that the state after every frame is written to (atomically), and that a refinement
+    of the same fit and settings goes on from, at the frame after the last one written: the frames are refined
+    one after another, each from the last one's correction, with one random stream, so going on from a checkpoint
+    draws the same cameras as a run that was never stopped. The caller removes it once the tracks are kept."""
     from causalgs.metrics.pixel import psnr
     from causalgs.model.fit import tracking_loss
 
@@ -325,6 +330,7 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
     scored_on = "val" if all(val.get(k) for k in range(n)) else "train"
     scoring = val if scored_on == "val" else train
     rng = np.random.default_rng(cfg.seed)
+    key = _key(model, cfg, half, frames, plane)
     with torch.no_grad():
         x0 = g.means[idx].detach()
         h = model.mixtures(x0).to(dtype)
@@ -374,7 +380,10 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
 
     A_out, b_out, P_out = [], [], []
     before, after = [], []
-    for k in range(n):
+    start = _resume(checkpoint, key, n, rng, (r, d, s, P), (A_out, b_out, P_out, before, after))
+    if start and progress is not None:
+        progress(start, n)
+    for k in range(start, n):
         images = train.get(k, [])
         judge = scoring[k][: cfg.score_views] if scoring.get(k) else images[: cfg.score_views]
         with torch.no_grad():
@@ -408,12 +417,62 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
         b_out.append(b_k.detach().double().numpy())
         if P_k is not None:
             P_out.append(P_k.double().numpy())
+        if checkpoint is not None and k + 1 < n:
+            _save_partial(checkpoint, key, k + 1, rng, (r, d, s, P), (A_out, b_out, P_out, before, after))
         if progress is not None:
             progress(k + 1, n)
     bent = {} if P is None else {"P": np.stack(P_out), "centre": centre.double().numpy(),
                                  "radius": radius.double().numpy(), "pattern_body": pb}  # fmt: skip
-    return Tracks(np.stack(A_out), np.stack(b_out), np.array(before), np.array(after), scored_on,
-                  _key(model, cfg, half, frames, plane), cfg.stretch, **bent)
+    return Tracks(np.stack(A_out), np.stack(b_out), np.array(before), np.array(after), scored_on, key,
+                  cfg.stretch, **bent)  # fmt: skip
+
+
+_CARRIED = ("r", "d", "s", "P")  # the corrections carried from frame to frame (s, P: None without stretch, bend)
+_MADE = ("A", "b", "P_out", "psnr_before", "psnr_after")  # the per-frame results so far
+
+
+def _save_partial(path, key: str, done: int, rng, carried, made) -> None:
+    """The state of :func:`refine_tracks` once ``done`` frames are refined: what it needs to go on."""
+    import json
+
+    arrays = {name: t.detach().double().numpy() for name, t in zip(_CARRIED, carried) if t is not None}
+    arrays.update({name: np.asarray(v) for name, v in zip(_MADE, made) if len(v)})
+    write_npz(path, key=np.array(key), done=np.array(done), rng=np.array(json.dumps(rng.bit_generator.state)),
+              **arrays)  # fmt: skip
+
+
+def _resume(path, key: str, n: int, rng, carried, made) -> int:
+    """Restore the state :func:`_save_partial` wrote at ``path`` into ``rng``, the tensors ``carried`` and the lists
+    ``made``, when it is of this refinement (``key``) and has fewer than ``n`` frames; the frames it has (0: none,
+    nothing restored). A checkpoint of other settings, another fit or another version is ignored (overwritten)."""
+    import json
+
+    if path is None or not Path(path).is_file():
+        return 0
+    try:
+        with np.load(path) as z:
+            if str(z["key"]) != key:
+                return 0
+            done = int(z["done"])
+            state = json.loads(str(z["rng"]))
+            loaded = {name: z[name] for name in (*_CARRIED, *_MADE) if name in z.files}
+    except (OSError, KeyError, ValueError):
+        return 0
+    shapes = {name: t.shape for name, t in zip(_CARRIED, carried) if t is not None}
+    if not 0 < done < n or any(loaded.get(name, np.empty(0)).shape != tuple(v) for name, v in shapes.items()):
+        return 0
+    if any(len(loaded.get(name, ())) != done for name in ("A", "b", "psnr_before", "psnr_after")):
+        return 0
+    if "P" in shapes and len(loaded.get("P_out", ())) != done:
+        return 0
+    rng.bit_generator.state = state
+    with torch.no_grad():
+        for name, t in zip(_CARRIED, carried):
+            if t is not None:
+                t.copy_(torch.from_numpy(loaded[name]).to(t.dtype))
+    for name, out in zip(_MADE, made):
+        out.extend(list(loaded[name]) if name in loaded else [])
+    return done
 
 
 def cached_tracks(run_dir, model, data, timeline, cfg: RefineConfig | None = None, progress=None,
@@ -434,8 +493,10 @@ def cached_tracks(run_dir, model, data, timeline, cfg: RefineConfig | None = Non
                                   cfg.stretch, **bent)  # fmt: skip
         except (OSError, KeyError, ValueError):
             pass  # unreadable or of another version: made again below
-    tr = refine_tracks(model, data, timeline, cfg, progress, half=half, frames=frames)
+    partial = path.with_name(f"{path.stem}.partial.npz")  # where an interrupted refinement goes on from
+    tr = refine_tracks(model, data, timeline, cfg, progress, half=half, frames=frames, checkpoint=partial)
     bent = {} if tr.P is None else {k: getattr(tr, k) for k in ("P", "centre", "radius", "pattern_body")}
     write_npz(path, A=tr.A, b=tr.b, psnr_before=tr.psnr_before, psnr_after=tr.psnr_after,
               scored_on=np.array(tr.scored_on), key=np.array(key), **bent)  # fmt: skip
+    partial.unlink(missing_ok=True)
     return tr

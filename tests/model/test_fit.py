@@ -1190,3 +1190,57 @@ def test_a_few_gaussians_far_from_every_body_are_strays():
     # a sparse fit, every group small: no Gaussian can be told a stray
     sparse = torch.from_numpy(_grid((0.0, 0.0, 0.0), (0.2, 0.2, 0.2), 0.05))
     assert not stray_gaussians(sparse, torch.ones(len(sparse), dtype=torch.bool), reach).any()
+
+
+def test_an_interrupted_refinement_goes_on_from_its_last_frame(fitted, tmp_path):
+    """Stopped after three frames, a refinement with a checkpoint goes on from the fourth (it refines none of the
+    first three again) and ends where a refinement never stopped ends, bend and stretch included; a checkpoint of
+    other settings is ignored; the kept tracks replace the checkpoint."""
+    import shutil
+
+    from causalgs.model.fit import load_model
+    from causalgs.model.refine import RefineConfig, cached_tracks, refine_tracks
+
+    run = tmp_path / "run"
+    shutil.copytree(fitted, run)
+    m, data, tl = load_model(run)
+    n = tl.train_frames
+    cfg = RefineConfig(iterations=4, views=2, stretch=True, bend=True, lr_shift=2e-3)
+    whole = refine_tracks(m, data, tl, cfg)
+
+    class Stop(Exception):
+        pass
+
+    def stop_after(frames):
+        def step(done, total):
+            if done == frames:
+                raise Stop
+
+        return step
+
+    part = tmp_path / "tracks.partial.npz"
+    with pytest.raises(Stop):
+        refine_tracks(m, data, tl, cfg, progress=stop_after(3), checkpoint=part)
+    assert part.is_file()
+    seen = []
+    went_on = refine_tracks(m, data, tl, cfg, progress=lambda d, t: seen.append(d), checkpoint=part)
+    assert seen == list(range(3, n + 1))  # restored at 3 frames, then frames 4..n refined
+    assert went_on.key == whole.key and went_on.P.shape == whole.P.shape
+    # (the float32 renderer's parallel sums leave differences of ~10 µm between two runs of the same refinement)
+    for name in ("A", "b", "P"):
+        assert np.abs(getattr(went_on, name) - getattr(whole, name)).max() < 1e-4, name
+    assert np.allclose(went_on.psnr_after, whole.psnr_after, atol=0.05)
+    assert not np.allclose(whole.b[1:], np.broadcast_to(whole.b[:1], whole.b[1:].shape))  # it moved: a real check
+    # another seed draws other cameras: the checkpoint is not of it, so it starts from frame 1
+    other = []
+    refine_tracks(m, data, tl, RefineConfig(iterations=1, views=1, stretch=True, bend=True, seed=1),
+                  progress=lambda d, t: other.append(d), checkpoint=part)  # fmt: skip
+    assert other[0] == 1
+    # cached_tracks goes on from its own checkpoint beside the tracks, and removes it once they are kept
+    with pytest.raises(Stop):
+        cached_tracks(run, m, data, tl, cfg, progress=stop_after(2))
+    assert (run / "tracks-bent.partial.npz").is_file() and not (run / "tracks-bent.npz").exists()
+    seen.clear()
+    kept = cached_tracks(run, m, data, tl, cfg, progress=lambda d, t: seen.append(d))
+    assert seen[0] == 2 and (run / "tracks-bent.npz").is_file() and not (run / "tracks-bent.partial.npz").exists()
+    assert np.abs(kept.b - whole.b).max() < 1e-4
