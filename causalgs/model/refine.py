@@ -435,8 +435,8 @@ def _save_partial(path, key: str, done: int, rng, carried, made) -> None:
     """The state of :func:`refine_tracks` once ``done`` frames are refined: what it needs to go on."""
     import json
 
-    arrays = {name: t.detach().double().numpy() for name, t in zip(_CARRIED, carried) if t is not None}
-    arrays.update({name: np.asarray(v) for name, v in zip(_MADE, made) if len(v)})
+    arrays = {name: t.detach().double().numpy() for name, t in zip(_CARRIED, carried, strict=True) if t is not None}
+    arrays.update({name: np.asarray(v) for name, v in zip(_MADE, made, strict=True) if len(v)})
     write_npz(path, key=np.array(key), done=np.array(done), rng=np.array(json.dumps(rng.bit_generator.state)),
               **arrays)  # fmt: skip
 
@@ -458,7 +458,7 @@ def _resume(path, key: str, n: int, rng, carried, made) -> int:
             loaded = {name: z[name] for name in (*_CARRIED, *_MADE) if name in z.files}
     except (OSError, KeyError, ValueError):
         return 0
-    shapes = {name: t.shape for name, t in zip(_CARRIED, carried) if t is not None}
+    shapes = {name: t.shape for name, t in zip(_CARRIED, carried, strict=True) if t is not None}
     if not 0 < done < n or any(loaded.get(name, np.empty(0)).shape != tuple(v) for name, v in shapes.items()):
         return 0
     if any(len(loaded.get(name, ())) != done for name in ("A", "b", "psnr_before", "psnr_after")):
@@ -467,10 +467,10 @@ def _resume(path, key: str, n: int, rng, carried, made) -> int:
         return 0
     rng.bit_generator.state = state
     with torch.no_grad():
-        for name, t in zip(_CARRIED, carried):
+        for name, t in zip(_CARRIED, carried, strict=True):
             if t is not None:
                 t.copy_(torch.from_numpy(loaded[name]).to(t.dtype))
-    for name, out in zip(_MADE, made):
+    for name, out in zip(_MADE, made, strict=True):
         out.extend(list(loaded[name]) if name in loaded else [])
     return done
 
