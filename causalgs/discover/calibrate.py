@@ -45,6 +45,34 @@ class Fit:
         return float(np.sqrt(self.loss)) * UNIT
 
 
+class Resume:
+    """Where a calibration keeps its state as it goes, so that one stopped part-way goes on from there: the scan's
+    grid points rolled out so far and its best, the warm-up's result, and Levenberg–Marquardt's θ and damping after
+    every accepted iteration. ``states`` (a dict, name → JSON-ready state) is updated in place and ``save()``
+    called after every change; a calibration finds its own states under ``prefix``. L-BFGS keeps none (its history
+    is not worth a file; a model with that many bodies calibrates once per start)."""
+
+    def __init__(self, states: dict | None = None, save=None, prefix: str = ""):
+        self.states = {} if states is None else states
+        self.save = save
+        self.prefix = prefix
+
+    def get(self, stage: str) -> dict | None:
+        return self.states.get(self.prefix + stage)
+
+    def put(self, stage: str, state: dict) -> None:
+        self.states[self.prefix + stage] = state
+        if self.save is not None:
+            self.save()
+
+    def sub(self, name: str) -> Resume:
+        return Resume(self.states, self.save, f"{self.prefix}{name}/")
+
+
+def _vector(theta: torch.Tensor) -> list[float]:
+    return [float(v) for v in theta.detach().double()]
+
+
 def scale(obs, frames) -> np.ndarray | None:
     """[F, P, 1] the residual weights of ``frames`` (:meth:`~causalgs.discover.observation.Observation.residual_scale`;
     None: all 1)."""
@@ -109,7 +137,8 @@ def jacobian(model: PhysicsModel, theta: torch.Tensor, frames, indices=None, bas
 
 
 def calibrate(model: PhysicsModel, theta0: torch.Tensor, frames=None, *, iterations: int = 25,
-              free=None, warm: float = 0.0, method: str = "auto", scan: bool = False) -> Fit:  # fmt: skip
+              free=None, warm: float = 0.0, method: str = "auto", scan: bool = False,
+              resume: Resume | None = None) -> Fit:  # fmt: skip
     """Levenberg–Marquardt (``method="lm"``) or L-BFGS (``"lbfgs"``; ``"auto"``: Levenberg–Marquardt for at most
     ``LM_MAX_PARAMS`` free parameters) from ``theta0`` on ``frames`` (default: the fit window), at most
     ``iterations`` iterations. ``free``: indices of θ to fit (default all); the rest stay at ``theta0``. ``warm``
@@ -117,19 +146,27 @@ def calibrate(model: PhysicsModel, theta0: torch.Tensor, frames=None, *, iterati
     horizon is nearly convex in the throw and the forces, so the long one starts in the right basin rather than
     where parameters compensate for one another (a friction that mimics a forward push, a throw that mimics drag).
     ``scan``: start instead from the best point of a coarse grid of materials and learned effect parameters
-    (:func:`scanned_start`)."""
+    (:func:`scanned_start`). ``resume``: where the calibration keeps its state as it goes and goes on from
+    (:class:`Resume`; None: nowhere)."""
     if method not in ("auto", "lm", "lbfgs"):
         raise CausalGSError(f"calibration method '{method}' is not one of auto, lm, lbfgs")
     if method == "auto":
         method = "lm" if (len(theta0) if free is None else len(list(free))) <= LM_MAX_PARAMS else "lbfgs"
     frames = fit_frames(model) if frames is None else list(frames)
     if scan:
-        theta0 = scanned_start(model, theta0, frames)
+        theta0 = scanned_start(model, theta0, frames, resume=resume)
     if warm > 0 and len(frames) >= 6:
         head = frames[: max(3, round(warm * len(frames)))]
-        theta0 = calibrate(model, theta0, head, iterations=max(5, iterations // 2), free=free, method=method).theta
+        done = None if resume is None else resume.get("warm")
+        if done is not None:
+            theta0 = torch.tensor(done["theta"], dtype=torch.float64)
+        else:
+            theta0 = calibrate(model, theta0, head, iterations=max(5, iterations // 2), free=free, method=method,
+                               resume=None if resume is None else resume.sub("warm")).theta  # fmt: skip
+            if resume is not None:
+                resume.put("warm", {"theta": _vector(theta0)})
     if method == "lm":
-        return _levenberg_marquardt(model, theta0, frames, iterations, free)
+        return _levenberg_marquardt(model, theta0, frames, iterations, free, resume)
     mask = torch.zeros(len(theta0), dtype=torch.bool)
     mask[list(range(len(theta0))) if free is None else list(free)] = True
     fixed = theta0.detach().clone()
@@ -173,7 +210,7 @@ SCAN_NU = (0.2, 0.3, 0.4)
 SCAN_MAX = 250  # rollouts at most: beyond, the learned effect parameters keep their start
 
 
-def scanned_start(model: PhysicsModel, theta0: torch.Tensor, frames) -> torch.Tensor:
+def scanned_start(model: PhysicsModel, theta0: torch.Tensor, frames, resume: Resume | None = None) -> torch.Tensor:
     """``theta0`` moved to the best point (lowest error over ``frames``, one rollout each) of a coarse grid: every
     body at each stiffness of ``SCAN_E`` and ratio of ``SCAN_NU``, each learned effect parameter at its start and
     one unit (:data:`~causalgs.discover.model.SCALES`) either side. The throw keeps its start.
@@ -183,7 +220,10 @@ def scanned_start(model: PhysicsModel, theta0: torch.Tensor, frames) -> torch.Te
     frames, the first contact at frame 41) both starting stiffnesses ended at 0.173 cm² with the ground 1.9 cm high
     and E = 7.8 kPa (truth 28.5 kPa); the scan's best point (E = 30 kPa, ν = 0.3, the ground a centimetre under the
     fit's, μ = 0.4; 0.267 cm² before any step) calibrated to 0.037 cm² at E = 29.6 kPa, ν = 0.29, μ = 0.29 (truth
-    0.3) and the ground 1.2 mm low, as a start at the truth did; the scan's second best went back to 0.173."""
+    0.3) and the ground 1.2 mm low, as a start at the truth did; the scan's second best went back to 0.173.
+
+    ``resume``: kept after every grid point (the points done and the best so far) and gone on from
+    (:class:`Resume`)."""
     frames = list(frames)
     mats = [(E, nu) for E in SCAN_E for nu in SCAN_NU if model.E_range[0] <= E <= model.E_range[1]
             and model.nu_range[0] <= nu <= model.nu_range[1]]  # fmt: skip
@@ -200,8 +240,18 @@ def scanned_start(model: PhysicsModel, theta0: torch.Tensor, frames) -> torch.Te
         grid = grid[:1]
     E_idx = [i for i, k in enumerate(model.knobs) if k.kind == "E"]
     nu_idx = [i for i, k in enumerate(model.knobs) if k.kind == "nu"]
-    best, best_loss = theta0, math.inf
-    for (E, nu), point in itertools.product(mats, grid):
+    best, best_loss, done = theta0, math.inf, 0
+    kept = None if resume is None else resume.get("scan")
+    if kept is not None:
+        done, best_loss = int(kept["done"]), float(kept["loss"])
+        best = torch.tensor(kept["theta"], dtype=torch.float64) if kept["theta"] is not None else theta0
+    for i, ((E, nu), point) in enumerate(itertools.product(mats, grid)):
+        if i < done:
+            continue
+        if resume is not None and i > done:
+            finite = math.isfinite(best_loss)
+            resume.put("scan", {"done": i, "loss": best_loss if finite else 1e300,
+                                "theta": _vector(best) if finite else None})  # fmt: skip
         th = theta0.detach().clone()
         th[E_idx] = model.E_internal(E)
         th[nu_idx] = model.nu_internal(nu)
@@ -214,6 +264,8 @@ def scanned_start(model: PhysicsModel, theta0: torch.Tensor, frames) -> torch.Te
             continue
         if math.isfinite(loss) and loss < best_loss:
             best, best_loss = th, loss
+    if resume is not None and math.isfinite(best_loss):
+        resume.put("scan", {"done": len(mats) * len(grid), "loss": best_loss, "theta": _vector(best)})
     return best
 
 
@@ -245,14 +297,21 @@ def live(model: PhysicsModel, J: np.ndarray) -> np.ndarray:
     return np.abs(J).max(0) * UNIT > inert_step(model)
 
 
-def _levenberg_marquardt(model: PhysicsModel, theta0: torch.Tensor, frames, iterations: int, free) -> Fit:
+def _levenberg_marquardt(model: PhysicsModel, theta0: torch.Tensor, frames, iterations: int, free,
+                         resume: Resume | None = None) -> Fit:  # fmt: skip
     """Damped Gauss–Newton steps (J^T J + λ diag(J^T J)) δ = J^T r; λ shrinks after an accepted step and grows
     after a rejected one (a worse or blown-up trial). Stops when an accepted step gains less than 1e-5 of the loss,
-    or when no damping finds a better point."""
+    or when no damping finds a better point. ``resume``: θ, λ and the count kept after every accepted iteration,
+    and gone on from (:class:`Resume`)."""
     idx = list(range(len(theta0))) if free is None else list(free)
     E0 = _start_stiffness(model, theta0)
     target = targets(model.obs, frames)
     theta = theta0.detach().clone()
+    kept = None if resume is None else resume.get("lm")
+    first, lam, count = 0, 1e-2, 1
+    if kept is not None:
+        theta = torch.tensor(kept["theta"], dtype=torch.float64)
+        first, lam, count = int(kept["iteration"]), float(kept["lam"]), int(kept["evaluations"])
     try:
         x = positions(model, theta, frames)
     except CausalGSError:
@@ -261,8 +320,7 @@ def _levenberg_marquardt(model: PhysicsModel, theta0: torch.Tensor, frames, iter
         return Fit(theta, BLOWN, 1, E0)
     r = target - x
     loss = float(r @ r) / len(r)
-    lam, count = 1e-2, 1
-    for _ in range(iterations):
+    for it in range(first, iterations):
         J = jacobian(model, theta, frames, idx, base=x)
         count += len(idx)
         moving = live(model, J)  # the rest of θ is held where it is
@@ -293,6 +351,8 @@ def _levenberg_marquardt(model: PhysicsModel, theta0: torch.Tensor, frames, iter
             lam *= 10.0
         if not accepted or before - loss < 1e-5 * before:
             break
+        if resume is not None:
+            resume.put("lm", {"theta": _vector(theta), "lam": lam, "evaluations": count, "iteration": it + 1})
     return Fit(theta, loss, count, E0)
 
 

@@ -6,7 +6,9 @@ inputs, so every calibration is named by where it happens (``"base/1e+05"``, ``"
 ``"round 1/drag/polish"``) and its result — θ, loss, evaluations — is written to ``progress.json`` as soon as it
 ends (atomically). A run resumed on the same inputs (the same options and the same measurement, checked by a
 fingerprint) takes every finished calibration from the file and only computes what is left; a file of other inputs
-is a one-line error rather than a silently mixed result.
+is a one-line error rather than a silently mixed result. The calibration under way keeps its state as it goes
+(``calibrating.json`` beside it: the scan's points so far, the warm-up, every accepted Levenberg–Marquardt
+iteration; :class:`~causalgs.discover.calibrate.Resume`), so a stop loses at most an iteration of it.
 
 The fingerprint covers what a calibration's result depends on (:func:`calibration_options`: the model, its grid,
 the starts, the iteration budget), not what decides between results (the gate, the ambiguity margins, the number
@@ -25,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from causalgs.discover.calibrate import Fit, calibrate
+from causalgs.discover.calibrate import Fit, Resume, calibrate
 from causalgs.errors import CausalGSError
 from causalgs.io import read_json, write_json
 
@@ -69,6 +71,7 @@ class Journal:
         self.key = key
         self.entries: dict[str, dict] = {}
         self.reused = 0
+        self.partial: dict[str, dict] = {}  # the calibration under way: its name → its states (Resume)
         if self.path is None:
             return
         if self.path.exists():
@@ -82,6 +85,17 @@ class Journal:
                 raise CausalGSError(f"{self.path}: made with other options or another measurement; choose another "
                                     "--out to start afresh")  # fmt: skip
             self.entries = dict(saved["entries"])
+        if self._partial_path.is_file() and resume:
+            try:
+                saved = read_json(self._partial_path, "calibration in progress")
+            except CausalGSError:
+                saved = None  # a state is only a shortcut: without it the calibration starts again
+            if isinstance(saved, dict) and saved.get("fingerprint") == key and isinstance(saved.get("states"), dict):
+                self.partial = saved["states"]
+
+    @property
+    def _partial_path(self) -> Path:
+        return self.path.with_name("calibrating.json")
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -95,16 +109,33 @@ class Journal:
             return Fit(torch.tensor(e["theta"], dtype=torch.float64), float(e["loss"]), int(e["evaluations"]),
                        float(e["start"]))  # fmt: skip
         t0 = time.monotonic()
-        f = calibrate(model, theta, **options)
+        states = self.partial.setdefault(name, {})
+        spent = float(states.get("seconds", 0.0))  # before the stop, when it goes on from a kept state
+        f = calibrate(model, theta, **options, resume=Resume(states, lambda: self._keep(name, t0, spent)))
         self.entries[name] = {"theta": [float(v) for v in f.theta.detach().double()], "loss": _finite(f.loss),
                               "evaluations": int(f.evaluations), "start": float(f.start),
-                              "seconds": round(time.monotonic() - t0, 2)}  # fmt: skip
+                              "seconds": round(spent + time.monotonic() - t0, 2)}  # fmt: skip
         self._write()
+        self.partial.pop(name, None)
+        self._write_partial()
         return f
+
+    def _keep(self, name: str, t0: float, spent: float) -> None:
+        """The state of the calibration ``name`` changed: kept on disk, with the seconds it has taken so far."""
+        self.partial[name]["seconds"] = round(spent + time.monotonic() - t0, 2)
+        self._write_partial()
 
     def _write(self) -> None:
         if self.path is not None:
             write_json(self.path, {"version": VERSION, "fingerprint": self.key, "entries": self.entries})
+
+    def _write_partial(self) -> None:
+        if self.path is None:
+            return
+        if self.partial:
+            write_json(self._partial_path, {"version": VERSION, "fingerprint": self.key, "states": self.partial})
+        else:
+            self._partial_path.unlink(missing_ok=True)
 
 
 def _finite(v: float) -> float:

@@ -1404,3 +1404,75 @@ def test_a_yield_stress_is_screened_at_the_probe_that_sees_flow():
     (s_both,) = screen(base, theta, [both], frames)
     assert s_above.gain < 0.05 and s_above.probe == (1e6,), s_above.gain
     assert s_both.gain > 0.5 and s_both.probe == (1200.0,), s_both.gain
+
+
+def test_a_stopped_calibration_goes_on_from_its_last_kept_state(tmp_path, monkeypatch):
+    """A journal's calibration keeps its state as it goes (the scan's grid points, the warm-up, every accepted
+    Levenberg–Marquardt iteration) in ``calibrating.json``. Stopped after its first full-window iteration and run
+    again, it rolls out neither the scan nor the warm-up again, ends where a calibration never stopped ends, and
+    the state file goes once the result is kept."""
+    import json
+
+    from causalgs.discover import calibrate as C
+    from causalgs.discover import journal as J
+    from causalgs.discover.model import PhysicsModel
+
+    spec = "gravity;ground:mu=0.3;walls"
+    obs, truth, th_true = _thrown_cube(spec, (0.0, 0.0, 0.1), (0.4, 0.0, -1.0), 10, frames=14)
+    m = PhysicsModel(obs, spec, ("ground.mu",), res=16)
+    start = m.initial(E=3e5, nu=0.45, effects={"ground.mu": 0.45})  # the scan's μ: 0.15, 0.45, 0.75
+    for i, k in enumerate(truth.knobs):  # the truth's throw, a little off
+        if k.kind in ("u", "w"):
+            start[m.index(k.name)] = th_true[i] + 0.05
+    rollout, calls = m.rollout, []
+    m.rollout = lambda *a, **k: calls.append(1) or rollout(*a, **k)
+    options = {"iterations": 6, "warm": 0.5, "scan": True}
+    grid = len(C.SCAN_E) * len(C.SCAN_NU) * 3  # materials × μ
+    whole = J.Journal(None, "").calibrate("bounce", m, start, **options)
+    assert len(calls) > grid + whole.evaluations  # the scan, the warm-up and the full window
+    spent = len(calls)
+
+    class Stop(Exception):
+        pass
+
+    write = J.write_json
+
+    def stop_in_lm(path, data):
+        write(path, data)
+        if path.name == "calibrating.json" and "lm" in data["states"]["bounce"]:
+            raise Stop
+
+    monkeypatch.setattr(J, "write_json", stop_in_lm)
+    with pytest.raises(Stop):
+        J.Journal(tmp_path / "progress.json", "key").calibrate("bounce", m, start, **options)
+    kept = json.loads((tmp_path / "calibrating.json").read_text())
+    assert kept["fingerprint"] == "key"
+    assert {"scan", "warm", "warm/lm", "lm"} <= set(kept["states"]["bounce"]), kept["states"]["bounce"].keys()
+    assert kept["states"]["bounce"]["lm"]["iteration"] == 1 and not (tmp_path / "progress.json").exists()
+    monkeypatch.setattr(J, "write_json", write)
+    assert J.Journal(tmp_path / "progress.json", "other", resume=True).partial == {}  # not of this run: ignored
+    calls.clear()
+    went_on = J.Journal(tmp_path / "progress.json", "key", resume=True).calibrate("bounce", m, start, **options)
+    # the rest of the full-window fit only: one rollout at the kept θ, then the iterations after the first (that one
+    # took a rollout at the start, one per parameter for the Jacobian and at least one trial)
+    assert 1 <= len(calls) <= 1 + whole.evaluations - (len(start) + 2)
+    assert went_on.evaluations == whole.evaluations and went_on.start == whole.start
+    assert went_on.loss == pytest.approx(whole.loss, rel=1e-3, abs=1e-6)
+    assert torch.allclose(went_on.theta, whole.theta, atol=1e-4)
+    assert not (tmp_path / "calibrating.json").exists()
+    done = json.loads((tmp_path / "progress.json").read_text())["entries"]["bounce"]
+    assert done["evaluations"] == whole.evaluations and done["seconds"] > 0
+    # stopped in the scan, after its tenth grid point: it goes on from the eleventh
+    def stop_in_scan(path, data):
+        write(path, data)
+        if path.name == "calibrating.json" and data["states"]["scan"]["scan"]["done"] == 10:
+            raise Stop
+
+    monkeypatch.setattr(J, "write_json", stop_in_scan)
+    with pytest.raises(Stop):
+        J.Journal(tmp_path / "progress.json", "key", resume=True).calibrate("scan", m, start, **options)
+    monkeypatch.setattr(J, "write_json", write)
+    calls.clear()
+    again = J.Journal(tmp_path / "progress.json", "key", resume=True).calibrate("scan", m, start, **options)
+    assert len(calls) <= spent - 10 and again.evaluations == whole.evaluations
+    assert torch.allclose(again.theta, whole.theta, atol=1e-4)
