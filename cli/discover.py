@@ -93,7 +93,8 @@ def _starts(text: str) -> tuple[float, ...]:
 @precision_option
 @click.option("--resume", is_flag=True,
               help="Continue the discovery run in --out (stopped, or to redo its outputs) from the calibrations it "
-                   "finished (progress.json); the options must be the same.")  # fmt: skip
+                   "finished (progress.json) and the one it was in (calibrating.json); the options must be the "
+                   "same.")  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print report.json to stdout.")
 def discover(source, out, spec, learn, candidates, max_effects, res, starts, iterations, tracking, lens, split,
              weigh, precision, resume, as_json):  # fmt: skip
@@ -127,7 +128,8 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     point at every frame) and discover.json (the options); for a run also images.png (held-out
     cameras at held-out frames, rendered before and after) and, when an effect is found, config.toml (the run's
     config with it added: `causalgs fit DATA --config DIR/config.toml` refits the scene). Every calibration is
-    saved as it finishes (progress.json): a stopped run goes on with --resume, redoing none of them.
+    saved as it finishes (progress.json), and the one under way keeps its state as it goes (calibrating.json):
+    a stopped run goes on with --resume, redoing none of them and losing at most an iteration of that one.
     """
     from causalgs import _ti
     from causalgs.discover.candidates import select

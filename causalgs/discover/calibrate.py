@@ -242,16 +242,18 @@ def scanned_start(model: PhysicsModel, theta0: torch.Tensor, frames, resume: Res
     nu_idx = [i for i, k in enumerate(model.knobs) if k.kind == "nu"]
     best, best_loss, done = theta0, math.inf, 0
     kept = None if resume is None else resume.get("scan")
-    if kept is not None:
-        done, best_loss = int(kept["done"]), float(kept["loss"])
-        best = torch.tensor(kept["theta"], dtype=torch.float64) if kept["theta"] is not None else theta0
+    if kept is not None:  # (a loss of 1e300 at θ0: no grid point rolled out yet)
+        done, best_loss, best = int(kept["done"]), float(kept["loss"]), torch.tensor(kept["theta"], dtype=torch.float64)
+
+    def keep(i):
+        if resume is not None:  # JSON has no infinity
+            resume.put("scan", {"done": i, "loss": min(best_loss, 1e300), "theta": _vector(best)})
+
     for i, ((E, nu), point) in enumerate(itertools.product(mats, grid)):
         if i < done:
             continue
-        if resume is not None and i > done:
-            finite = math.isfinite(best_loss)
-            resume.put("scan", {"done": i, "loss": best_loss if finite else 1e300,
-                                "theta": _vector(best) if finite else None})  # fmt: skip
+        if i > done:
+            keep(i)
         th = theta0.detach().clone()
         th[E_idx] = model.E_internal(E)
         th[nu_idx] = model.nu_internal(nu)
@@ -264,8 +266,7 @@ def scanned_start(model: PhysicsModel, theta0: torch.Tensor, frames, resume: Res
             continue
         if math.isfinite(loss) and loss < best_loss:
             best, best_loss = th, loss
-    if resume is not None and math.isfinite(best_loss):
-        resume.put("scan", {"done": len(mats) * len(grid), "loss": best_loss, "theta": _vector(best)})
+    keep(len(mats) * len(grid))
     return best
 
 

@@ -73,6 +73,7 @@ independently (:func:`causalgs.discover.video.split_sigma`).
 from __future__ import annotations
 
 import hashlib
+import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -433,8 +434,6 @@ _MADE = ("A", "b", "P_out", "psnr_before", "psnr_after")  # the per-frame result
 
 def _save_partial(path, key: str, done: int, rng, carried, made) -> None:
     """The state of :func:`refine_tracks` once ``done`` frames are refined: what it needs to go on."""
-    import json
-
     arrays = {name: t.detach().double().numpy() for name, t in zip(_CARRIED, carried, strict=True) if t is not None}
     arrays.update({name: np.asarray(v) for name, v in zip(_MADE, made, strict=True) if len(v)})
     write_npz(path, key=np.array(key), done=np.array(done), rng=np.array(json.dumps(rng.bit_generator.state)),
@@ -445,8 +444,6 @@ def _resume(path, key: str, n: int, rng, carried, made) -> int:
     """Restore the state :func:`_save_partial` wrote at ``path`` into ``rng``, the tensors ``carried`` and the lists
     ``made``, when it is of this refinement (``key``) and has fewer than ``n`` frames; the frames it has (0: none,
     nothing restored). A checkpoint of other settings, another fit or another version is ignored (overwritten)."""
-    import json
-
     if path is None or not Path(path).is_file():
         return 0
     try:
@@ -459,11 +456,9 @@ def _resume(path, key: str, n: int, rng, carried, made) -> int:
     except (OSError, KeyError, ValueError):
         return 0
     shapes = {name: t.shape for name, t in zip(_CARRIED, carried, strict=True) if t is not None}
-    if not 0 < done < n or any(loaded.get(name, np.empty(0)).shape != tuple(v) for name, v in shapes.items()):
-        return 0
-    if any(len(loaded.get(name, ())) != done for name in ("A", "b", "psnr_before", "psnr_after")):
-        return 0
-    if "P" in shapes and len(loaded.get("P_out", ())) != done:
+    per_frame = ("A", "b", "psnr_before", "psnr_after") + (("P_out",) if "P" in shapes else ())
+    if (not 0 < done < n or any(loaded.get(name, np.empty(0)).shape != v for name, v in shapes.items())
+            or any(len(loaded.get(name, ())) != done for name in per_frame)):  # fmt: skip
         return 0
     rng.bit_generator.state = state
     with torch.no_grad():
