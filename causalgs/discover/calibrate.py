@@ -257,8 +257,8 @@ def scanned_start(model: PhysicsModel, theta0: torch.Tensor, frames, resume: Res
         th = theta0.detach().clone()
         th[E_idx] = model.E_internal(E)
         th[nu_idx] = model.nu_internal(nu)
-        for i, v in zip(effects, point, strict=True):
-            th[i] = model.knobs[i].internal(v)
+        for j, v in zip(effects, point, strict=True):
+            th[j] = model.knobs[j].internal(v)
         try:
             with torch.no_grad():
                 loss = float(mse(model, th, frames))

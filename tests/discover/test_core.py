@@ -964,7 +964,9 @@ def test_a_vector_parameter_is_judged_as_a_whole():
 
 def test_finalists_add_the_candidate_whose_signature_fits_the_residual():
     """A base that mimicked drag leaves the linearised screen little to gain from drag; the residual's shape (its
-    correlation with velocity) still brings drag to the refits. A negative screen gain is never added."""
+    correlation with velocity) still brings drag to the refits. A negative screen gain never brings a candidate by
+    its signature; a structural candidate (sticky ground, which replaces the sliding contact) is refitted whatever
+    its screen says, since a linear step off the base says nothing of a change in the contact law."""
     from causalgs.discover.candidates import BY_KEY
     from causalgs.discover.screen import Screened
     from causalgs.discover.search import DiscoverConfig, pick_finalists
@@ -972,17 +974,23 @@ def test_finalists_add_the_candidate_whose_signature_fits_the_residual():
     def s(key, gain):
         return Screened(BY_KEY[key], gain, {}, None, None)
 
+    assert BY_KEY["sticky"].replaces is not None and BY_KEY["damping"].replaces is None
     screened = [s("plasticity", 0.032), s("quadratic_drag", 0.018), s("damping", 0.016), s("linear_drag", 0.012),
                 s("force", 0.006), s("sticky", -6.0)]  # fmt: skip
     sig = {"v": 0.986, "vv": 0.986, "contact": 0.0, "const": 0.73, "internal": 0.59}
     keys = [f.candidate.key for f in pick_finalists(screened, sig, DiscoverConfig())]
-    assert keys == ["plasticity", "quadratic_drag", "linear_drag"]
-    # A residual whose shape fits no driver well (noise) adds nothing beyond the screen's own finalists.
+    assert keys == ["plasticity", "sticky", "quadratic_drag", "linear_drag"]
+    # A residual whose shape fits no driver well (noise) adds nothing beyond the screen's own finalists and the
+    # structural candidate.
     flat = {"v": 0.2, "vv": 0.21, "contact": 0.0, "const": 0.3, "internal": 0.1}
-    assert [f.candidate.key for f in pick_finalists(screened, flat, DiscoverConfig())] == ["plasticity"]
-    # The sticky ground's signature (contact) is the best, but its screen found it worse than the base.
-    contact = {"v": 0.1, "vv": 0.1, "contact": 0.9, "const": 0.2, "internal": 0.1}
-    assert "sticky" not in [f.candidate.key for f in pick_finalists(screened, contact, DiscoverConfig())]
+    one = DiscoverConfig(finalists=1)
+    assert [f.candidate.key for f in pick_finalists(screened, flat, one)] == ["plasticity", "sticky"]
+    # The force's signature (constant) is the best, but its screen found it worse than the base: not added.
+    worse = [s("plasticity", 0.032), s("force", -0.5), s("sticky", -6.0)]
+    const = {"v": 0.1, "vv": 0.1, "contact": 0.1, "const": 0.9, "internal": 0.1}
+    assert [f.candidate.key for f in pick_finalists(worse, const, one)] == ["plasticity", "sticky"]
+    # Without the structural candidate among those screened (no ground), nothing structural is added.
+    assert [f.candidate.key for f in pick_finalists(worse[:2], const, one)] == ["plasticity"]
 
 
 def test_a_second_round_screen_starts_from_the_accepted_model():
