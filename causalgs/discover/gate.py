@@ -13,8 +13,10 @@ A refit candidate is accepted only if all of these hold (``../shared/DISCOVERY.m
 4. the refit reaches the floor: its fit-window RMS is below the base's, within ``floor_factor`` (1.1×) of the best
    any model reached on this data or of the noise floor measured from the data, whichever is larger
    (:func:`causalgs.discover.residuals.lens_floor`; below the noise, a better fit of the window is fitting the
-   noise and tells candidates nothing), and within ``noise_factor`` (1.25×) of that noise floor; otherwise the
-   candidate explains only part of the discrepancy ("not converged", or an effect the catalogue does not name);
+   noise and tells candidates nothing), and within ``noise_factor`` (1.25×) of what a correct model would fit the
+   window by (that noise floor and, through a lens, what the lens cannot show of the refit's own motion:
+   :func:`causalgs.discover.search.window_floor`); otherwise the candidate explains only part of the discrepancy
+   ("not converged", or an effect the catalogue does not name);
 5. the refit predicts the held-out frames to within ``future_factor`` (3×) of what a correct model would miss
    them by (RMS, :func:`causalgs.discover.search.held_out_floor`): the tracks' own error as the refit's window
    shows it (at most the noise floor), the fit window's noise carried forward through the refit's own linearised
@@ -85,19 +87,22 @@ class Verdict:
 
 def judge(*, base_train: float, base_future: float, train: float, future: float, best_train: float,
           k_new: int, n_eff: int, k_base: int, z: dict, cfg: GateConfig,
-          noise: float | None = None, future_noise: float | None = None,
+          noise: float | None = None, future_noise: float | None = None, window_noise: float | None = None,
           pinned: dict | None = None) -> Verdict:  # fmt: skip
     """Apply the checks of the module docstring. ``*_train``/``*_future``: mean squared errors (one unit);
     ``z``: new parameter → |value − off| / standard error; ``noise``: the noise floor as a mean squared error in
     the same unit (None: not checked); ``future_noise``: what a correct model would miss the held-out frames by,
-    likewise (None: ``noise``); ``pinned``: new parameter → "upper"/"lower", those held at a bound."""
+    likewise (None: ``noise``); ``window_noise``: what a correct model would fit the window by, likewise (None:
+    ``noise``); ``pinned``: new parameter → "upper"/"lower", those held at a bound."""
     drop = 1.0 - future / max(base_future, 1e-300)
     d_bic = bic(train, n_eff, k_base + k_new) - bic(base_train, n_eff, k_base)
     reached = max(best_train, noise) if noise is not None else best_train
     floor_ok = train <= (cfg.floor_factor**2) * reached and train < base_train
-    noise_ok = noise is None or train <= (cfg.noise_factor**2) * noise
     if future_noise is None:
         future_noise = noise
+    if window_noise is None:
+        window_noise = noise
+    noise_ok = window_noise is None or train <= (cfg.noise_factor**2) * window_noise
     future_ok = future_noise is None or future <= (cfg.future_factor**2) * future_noise
     checks = {
         "future_drop": drop,
@@ -105,6 +110,8 @@ def judge(*, base_train: float, base_future: float, train: float, future: float,
         "z": z,
         "train_rms_ratio_to_best": math.sqrt(train / max(best_train, 1e-300)),
         "train_rms_ratio_to_noise": None if noise is None else math.sqrt(train / max(noise, 1e-300)),
+        "train_rms_ratio_to_window_floor": None if window_noise is None else
+        math.sqrt(train / max(window_noise, 1e-300)),
         "future_rms_ratio_to_noise": None if noise is None else math.sqrt(future / max(noise, 1e-300)),
         "future_rms_ratio_to_floor": None if future_noise is None else math.sqrt(future / max(future_noise, 1e-300)),
     }
@@ -126,7 +133,8 @@ def judge(*, base_train: float, base_future: float, train: float, future: float,
     if not floor_ok:
         reasons.append("the refit does not reach the floor (not converged)")
     elif not noise_ok:
-        reasons.append(f"the refit stays {math.sqrt(train / noise):.2f}× above the noise floor (explains only part)")
+        what = "the noise floor" if window_noise == noise else "the noise floor and what the lens cannot show"
+        reasons.append(f"the refit stays {math.sqrt(train / window_noise):.2f}× above {what} (explains only part)")
     if not future_ok:
         what = "the noise floor" if future_noise == noise else "what a correct model would"
         reasons.append(f"the refit misses the held-out frames by {math.sqrt(future / future_noise):.1f}× {what} "

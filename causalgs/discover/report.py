@@ -377,10 +377,10 @@ def markdown(report: dict) -> str:
         L.append("")
     st = report.get("settled")
     if st:
-        L += [f"Round {st['round']} was not run: the repaired model fits the window at "
-              f"{st['train_rms_ratio_to_noise']:.2f}× the noise and misses the held-out frames by "
-              f"{st['future_rms_ratio_to_floor']:.2f}× what a correct model would, so nothing is left to explain "
-              "(a further effect could only fit the noise).", ""]  # fmt: skip
+        window = st.get("train_rms_ratio_to_window_floor", st.get("train_rms_ratio_to_noise"))
+        L += [f"Round {st['round']} was not run: the repaired model fits the window at {window:.2f}× and misses the "
+              f"held-out frames by {st['future_rms_ratio_to_floor']:.2f}× what a correct model would, so nothing is "
+              "left to explain (a further effect could only fit the noise).", ""]  # fmt: skip
     if report["discovered"]:
         d0 = report["discovered"][0]
         L += ["## Base parameters before and after (the missing effect biases them)", "",

@@ -1376,8 +1376,59 @@ def test_an_interval_carries_the_tracks_drift_where_the_measurement_is_tracked()
         assert "se_tracking" not in out["plain"][2][p]
 
 
+def test_the_window_floor_credits_what_the_lens_cannot_show(monkeypatch):
+    """Through a lens, a correct model fits the window by the noise and by what the lens cannot show of its own
+    motion: the floor² plus the mean over the fit window of each body's departure², weighted by its points and each
+    frame's capped at WEIGH_CAP × the floor (a plain numpy reference). Without a lens, or with residuals weighted by
+    a track error already, the floor alone. The gate turns away a refit above 1.25× that, not above the noise."""
+    from types import SimpleNamespace
+
+    from causalgs.discover import search
+
+    P, T, observed, floor = 6, 10, 7, 1.35e-3
+    body = np.array([0, 0, 0, 0, 1, 1])
+    obs = SimpleNamespace(times=np.arange(T) / 120.0, observed=observed, points=P, bodies=2, body=body,
+                          mix=np.ones((P, 2)), track_error=None)  # fmt: skip
+    st = SimpleNamespace(model=SimpleNamespace(obs=obs))
+    rng = np.random.default_rng(3)
+    dep = rng.uniform(0.0, 2e-3, (T - 1, 2))
+    dep[3, 0] = 9e-3  # an impact: above the cap of 4 × the floor
+    dep[8, 1] = 0.5  # a held-out frame: not in the window
+    monkeypatch.setattr(search, "lens_blind", lambda state: dep)
+    want = (floor * 100) ** 2
+    for f in range(1, observed):  # the plain reference, per frame and body, in cm²
+        for b, n in ((0, 4), (1, 2)):
+            want += n / P * (min(dep[f - 1, b], 4 * floor) * 100) ** 2 / (observed - 1)
+    got = search.window_floor(st, floor)
+    assert got == pytest.approx(want, rel=1e-12) and got > 1.2 * (floor * 100) ** 2
+    for plain in (dict(mix=None), dict(track_error=np.ones((T, 2)))):
+        other = SimpleNamespace(model=SimpleNamespace(obs=SimpleNamespace(**{**vars(obs), **plain})))
+        assert search.window_floor(other, floor) == pytest.approx((floor * 100) ** 2)
+    # the gate: a refit at 1.4× the noise explains only part where nothing deforms, and all of it where the lens
+    # cannot show 1.2× the noise of its motion (√(1 + 1.2²) = 1.56: the refit at 0.90× that)
+    near = dict(base_train=40.0, base_future=90.0, future=2.0, best_train=1.96, k_new=1, n_eff=300, k_base=8,
+                z={"c": 8.0}, cfg=GateConfig(), noise=1.0)  # fmt: skip
+    partial = judge(train=1.96, **near)
+    assert not partial.passed and partial.reasons == ["the refit stays 1.40× above the noise floor (explains only "
+                                                      "part)"]  # fmt: skip
+    lensed = judge(train=1.96, window_noise=1.0 + 1.2**2, **near)
+    assert lensed.passed and lensed.checks["train_rms_ratio_to_window_floor"] == pytest.approx(math.sqrt(1.96 / 2.44))
+    assert lensed.checks["train_rms_ratio_to_noise"] == pytest.approx(1.4)
+    far = judge(train=4.0, window_noise=1.0 + 1.2**2, **dict(near, best_train=4.0))
+    assert not far.passed and far.reasons == ["the refit stays 1.28× above the noise floor and what the lens cannot "
+                                              "show (explains only part)"]  # fmt: skip
+
+
 def test_a_model_is_settled_only_within_the_noise_on_both_windows():
-    from causalgs.discover.search import State, held_out_floor, settled
+    from types import SimpleNamespace
+
+    from causalgs.discover import search
+    from causalgs.discover.search import held_out_floor, settled
+
+    def State(*args, **kw):  # a model seen without a lens: its window floor is the noise's
+        st = search.State(*args, **kw)
+        st.model = SimpleNamespace(obs=SimpleNamespace(mix=None, track_error=None))
+        return st
 
     floor = 1.376e-3  # m per coordinate
     # the damped model on the damping landing from video (seed 0): 0.65× the noise on the window, and 0.75× what a

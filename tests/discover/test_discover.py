@@ -489,5 +489,5 @@ def test_no_further_round_once_the_repaired_model_agrees_within_the_noise(ti32_r
                         obs=_throw(C_TRUE))  # fmt: skip
     assert [d["effect"] for d in rep["discovered"]] == ["linear_drag"]
     assert len(rep["rounds"]) == 1 and rep["settled"]["round"] == 2
-    assert rep["settled"]["train_rms_ratio_to_noise"] <= 1 and rep["settled"]["future_rms_ratio_to_floor"] <= 1
+    assert rep["settled"]["train_rms_ratio_to_window_floor"] <= 1 and rep["settled"]["future_rms_ratio_to_floor"] <= 1
     assert "Round 2 was not run" in (tmp_path / "report.md").read_text()
