@@ -613,8 +613,9 @@ def window_floor(state: State, floor: float) -> float:
     On the video-level sticky landing (seed 1) the tracks were 2.52 mm RMS from the truth, the noise credited to
     them 1.35 mm (a quarter pixel; the camera halves disagreed by 0.77 mm): the sticky refit fitted the window at
     1.69 mm (1.25× the noise, failing the gate's 1.25 by a hair) while its block jammed at the impact, departing
-    from rigid by 2.13 mm RMS over the window (6.6 mm at most); credited, 2.52 mm, and the refit at 0.67× it. The
-    refits of damping and plasticity on the same data: 2.86× → 2.00× and 2.99× → 2.36×; the base 4.56× → 4.51×."""
+    from rigid by 2.13 mm RMS over the window (6.6 mm at most); credited, 2.52 mm, and the polished refit at 0.69×
+    it. The refits of damping and plasticity on the same data: 2.86× → 2.00× and 2.99× → 2.36×; the base 4.56× →
+    4.51×."""
     model, obs = state.model, state.model.obs
     noise = (floor / UNIT) ** 2
     if obs.mix is None or obs.track_error is not None:
