@@ -108,10 +108,12 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     contact, from a coarse scan), its throw started from the whole free flight; the disagreement is mapped by
     frame, body and contact state; every candidate of the
     catalogue is screened with one sensitivity rollout; the best are refitted jointly with the base through the
-    differentiable MPM (through a run's rigid lens, --weigh weighs residuals down where the bodies deform); a gate
+    differentiable MPM, and sticky ground (which replaces the sliding contact) wherever it applies, from a scan of
+    its own (through a run's rigid lens, --weigh weighs residuals down where the bodies deform); a gate
     accepts one only if the held-out error drops, BIC (with an effective sample size)
     improves, its parameters are significant (block bootstrap) and inside their ranges, and the refit reaches the
-    noise floor on the fit window and misses the held-out frames by at most 3x what a correct model would (its own
+    noise floor on the fit window (with what the lens cannot show of its own motion: a rigid track errs where a
+    body deforms) and misses the held-out frames by at most 3x what a correct model would (its own
     window error, at most the floor, with the window's noise, the bodies' extent and the rigid tracks' error where
     the bodies deform carried forward). Among
     passers, the held-out frames choose first and BIC among those they do not tell apart.
