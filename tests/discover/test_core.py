@@ -993,6 +993,40 @@ def test_finalists_add_the_candidate_whose_signature_fits_the_residual():
     assert [f.candidate.key for f in pick_finalists(worse[:2], const, one)] == ["plasticity"]
 
 
+def test_a_structural_refit_starts_first_from_a_scan_of_its_own():
+    """Sticky ground replaces the sliding contact: its first refit start is scanned (materials × the ground's
+    offset), since the base's θ is tuned to another contact law; its second start, and both starts of an added
+    effect (damping), are not."""
+    from causalgs.discover.calibrate import Fit
+    from causalgs.discover.candidates import BY_KEY
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.screen import screen, transfer
+    from causalgs.discover.search import DiscoverConfig, _refit
+
+    obs, truth, th = _thrown_cube("gravity;ground:n=0,0,1:d=0.0:mu=0.3;walls", (0.0, 0.0, 0.1), (1.0, 0.0, -1.0),
+                                  observed=10, frames=12)  # fmt: skip
+    base = PhysicsModel(obs, "gravity;ground:n=0,0,1:d=0.0:mu=0.3;walls", learn=("ground.mu", "ground.d"), res=16)
+    theta = transfer(truth, th, base)
+    cands = [BY_KEY["sticky"], BY_KEY["damping"]]
+    assert all(c.applies(base.effects, base.learn) for c in cands)
+    screened = {s.candidate.key: s for s in screen(base, theta, cands, range(1, obs.observed))}
+
+    class Journal:  # records each calibration asked for; returns its start
+        def __init__(self):
+            self.calls = []
+
+        def calibrate(self, name, model, theta0, scan=False, **kw):
+            self.calls.append((name, scan))
+            return Fit(theta0.clone(), 1.0, 1, 3e4)
+
+    for key, want in (("sticky", [True, False]), ("damping", [False, False])):
+        j = Journal()
+        st = _refit(base, screened[key], DiscoverConfig(iterations=2), j, "round 1")
+        assert [n for n, _ in j.calls][:2] == [f"round 1/{key}/start 1", f"round 1/{key}/start 2"]
+        assert [sc for _, sc in j.calls][:2] == want, (key, j.calls)
+        assert len(st.starts) >= 2
+
+
 def test_a_second_round_screen_starts_from_the_accepted_model():
     """After an effect is accepted, each candidate of the next round starts from the repaired model: at its off value
     it replays the repaired model's motion exactly (the accepted effect's fitted value carried over), so the
