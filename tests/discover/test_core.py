@@ -1456,24 +1456,20 @@ def test_the_window_floor_credits_what_the_lens_cannot_show(monkeypatch):
 def test_a_model_is_settled_only_within_the_noise_on_both_windows():
     from types import SimpleNamespace
 
-    from causalgs.discover import search
-    from causalgs.discover.search import held_out_floor, settled
+    from causalgs.discover.search import State, held_out_floor, settled
 
-    def State(*args, **kw):  # a model seen without a lens: its window floor is the noise's
-        st = search.State(*args, **kw)
-        st.model = SimpleNamespace(obs=SimpleNamespace(mix=None, track_error=None))
-        return st
+    plain = SimpleNamespace(obs=SimpleNamespace(mix=None, track_error=None))  # no lens: the window floor is the noise
 
     floor = 1.376e-3  # m per coordinate
     # the damped model on the damping landing from video (seed 0): 0.65× the noise on the window, and 0.75× what a
     # correct model would miss the held-out frames by (the tracks' error with its spread, extent and blind spot: 3.9 mm)
-    damped = State(None, None, train=0.0079, future=0.0845, sim=None, spread=2.2e-3, extent=2.4e-3, blind=2.0e-3)
+    damped = State(plain, None, train=0.0079, future=0.0845, sim=None, spread=2.2e-3, extent=2.4e-3, blind=2.0e-3)
     assert settled(damped, floor) and damped.future < held_out_floor(damped, floor)
-    assert not settled(State(None, None, train=0.03, future=0.0845, sim=None, spread=2.2e-3, extent=2.4e-3,
+    assert not settled(State(plain, None, train=0.03, future=0.0845, sim=None, spread=2.2e-3, extent=2.4e-3,
                              blind=2.0e-3), floor)  # above the noise on the window  # fmt: skip
-    assert not settled(State(None, None, train=0.0079, future=0.5, sim=None, spread=2.2e-3, extent=2.4e-3,
+    assert not settled(State(plain, None, train=0.0079, future=0.5, sim=None, spread=2.2e-3, extent=2.4e-3,
                              blind=2.0e-3), floor)  # misses the held-out frames  # fmt: skip
-    assert not settled(State(None, None, train=0.0079, future=0.0845, sim=None), floor)  # no spread: the tracks' own
+    assert not settled(State(plain, None, train=0.0079, future=0.0845, sim=None), floor)  # no spread: the tracks' own
 
 
 def test_a_yield_stress_is_screened_at_the_probe_that_sees_flow():
