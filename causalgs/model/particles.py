@@ -148,6 +148,7 @@ def seal_and_fill(occ: np.ndarray, first: int) -> np.ndarray:
 
 SUB = 4  # sub-samples per voxel edge where the surface cuts a voxel (64 per voxel: its inside share to 1/64)
 VOTERS = 8  # nearest surface Gaussians whose tangent planes decide whether a point is inside
+REACH = 0.75  # (voxels) how far from the nearest Gaussian a point of a voxel outside the occupancy may be inside
 
 
 def inside_fraction(occ: np.ndarray, origin: np.ndarray, h: float, pts: np.ndarray,
@@ -161,8 +162,10 @@ def inside_fraction(occ: np.ndarray, origin: np.ndarray, h: float, pts: np.ndarr
     arranged (their own spread's least axis is not: a face seen from no camera holds a few Gaussians in rows). A
     point is inside where the tangent planes of its ``VOTERS`` nearest Gaussians, weighted by distance at the scale
     of half a voxel, put it on average behind the surface (Hoppe et al.'s signed distance to the nearest tangent
-    plane, smoothed over a few so that one stray Gaussian does not cut a hole); a voxel's share is that of its
-    ``SUB``³ sub-samples inside."""
+    plane, smoothed over a few so that one stray Gaussian does not cut a hole), and, in a voxel outside ``occ``,
+    within ``REACH`` of a voxel of a Gaussian: a tangent plane says nothing past its face's edge, and a face's last
+    row of Gaussians above an unseen, sparsely sampled bottom otherwise hangs a lip of up to a voxel under the body.
+    A voxel's share is that of its ``SUB``³ sub-samples inside."""
     pts = np.asarray(pts, dtype=np.float64)
     blur = ndimage.gaussian_filter(occ.astype(np.float64), 1.0)
     grad = np.stack(np.gradient(blur), -1)
@@ -178,7 +181,12 @@ def inside_fraction(occ: np.ndarray, origin: np.ndarray, h: float, pts: np.ndarr
     dist, near = dist.reshape(len(q), v), near.reshape(len(q), v)
     w = np.exp(-0.5 * ((dist - dist[:, :1]) / (0.5 * h)) ** 2)
     side = ((q[:, None, :] - pts[near]) * normal[near]).sum(-1)
-    inside = ((w * side).sum(1) < 0).reshape(len(cells), -1)
+    inside = (w * side).sum(1) < 0
+    # A voxel outside the occupancy holds no Gaussian: it is cut only by a face on its edge, within reach of that
+    # face's Gaussians. Without the reach, a point under a face's last row of Gaussians (a body's unseen bottom,
+    # sampled sparsely) is behind the tangent planes of the faces beside it, which reach past the edge.
+    beyond = np.repeat(~occ[tuple(np.asarray(cells).T)], SUB**3) & (dist[:, 0] >= REACH * h)
+    inside = (inside & ~beyond).reshape(len(cells), -1)
     share = inside.mean(1)
     centroid = (x * inside[..., None]).sum(1) / np.maximum(inside.sum(1), 1)[:, None]
     return share, centroid

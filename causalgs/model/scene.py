@@ -248,7 +248,7 @@ class CausalGS(torch.nn.Module):
         dx = side / (pc.res - 2 * margin)
         centre = (lo + hi) / 2
         limit = min(pc.max_particles, pc.capacity)
-        for _ in range(8):  # a large body on a fine grid: coarser cells (a larger box), never a thinner fill
+        for _ in range(16):  # a large body on a fine grid: coarser cells (a larger box), never a thinner fill
             box_lo = centre - 0.5 * pc.res * dx
             box_lo[2] = lo[2] - (WALL_BAND + 0.5) * dx  # the ground plane just above the bottom wall band
             # Solid Gaussians off the grid (outliers beyond the paths' robust bounds) are carried like floaters, not
@@ -262,7 +262,9 @@ class CausalGS(torch.nn.Module):
                                             solid=inside.numpy(), coarse_fill=False, fill=pc.fill)  # fmt: skip
                 break
             except TooManyParticles as e:
-                dx *= 1.03 * (e.count / limit) ** (1.0 / 3.0)
+                # The count follows the volume (dx⁻³) only roughly: the surface's partial voxels and the closing
+                # change with the cell, so every try grows it by a tenth at least.
+                dx *= max(1.03 * (e.count / limit) ** (1.0 / 3.0), 1.1)
         else:
             fewer = f" or lower physics.budget (Gaussian particles, {pc.budget})" if pc.fill == "gaussians" else ""
             raise CausalGSError(f"no grid spacing keeps the particles within physics.max_particles = {limit}: raise "
