@@ -181,12 +181,8 @@ def inside_fraction(occ: np.ndarray, origin: np.ndarray, h: float, pts: np.ndarr
     dist, near = dist.reshape(len(q), v), near.reshape(len(q), v)
     w = np.exp(-0.5 * ((dist - dist[:, :1]) / (0.5 * h)) ** 2)
     side = ((q[:, None, :] - pts[near]) * normal[near]).sum(-1)
-    inside = (w * side).sum(1) < 0
-    # A voxel outside the occupancy holds no Gaussian: it is cut only by a face on its edge, within reach of that
-    # face's Gaussians. Without the reach, a point under a face's last row of Gaussians (a body's unseen bottom,
-    # sampled sparsely) is behind the tangent planes of the faces beside it, which reach past the edge.
-    beyond = np.repeat(~occ[tuple(np.asarray(cells).T)], SUB**3) & (dist[:, 0] >= REACH * h)
-    inside = (inside & ~beyond).reshape(len(cells), -1)
+    beyond = np.repeat(~occ[tuple(cells.T)], SUB**3) & (dist[:, 0] >= REACH * h)  # past a face's edge
+    inside = (((w * side).sum(1) < 0) & ~beyond).reshape(len(cells), -1)
     share = inside.mean(1)
     centroid = (x * inside[..., None]).sum(1) / np.maximum(inside.sum(1), 1)[:, None]
     return share, centroid
