@@ -163,7 +163,7 @@ def inside_fraction(occ: np.ndarray, origin: np.ndarray, h: float, pts: np.ndarr
     point is inside where the tangent planes of its ``VOTERS`` nearest Gaussians, weighted by distance at the scale
     of half a voxel, put it on average behind the surface (Hoppe et al.'s signed distance to the nearest tangent
     plane, smoothed over a few so that one stray Gaussian does not cut a hole), and, in a voxel outside ``occ``,
-    within ``REACH`` of a voxel of a Gaussian: a tangent plane says nothing past its face's edge, and a face's last
+    within ``REACH`` voxel of its nearest Gaussian: a tangent plane says nothing past its face's edge, and a face's last
     row of Gaussians above an unseen, sparsely sampled bottom otherwise hangs a lip of up to a voxel under the body.
     A voxel's share is that of its ``SUB``³ sub-samples inside."""
     pts = np.asarray(pts, dtype=np.float64)
