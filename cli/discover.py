@@ -84,12 +84,17 @@ def _starts(text: str) -> tuple[float, ...]:
                    "table the tracks erred 1.75-1.97x what the halves' disagreement alone says (in flight "
                    "0.9x, where the quarter pixel is more).")  # fmt: skip
 @click.option("--weigh/--no-weigh", default=False, show_default=True,
-              help="Through a run's rigid lens: weigh every residual by σ/√(σ² + e²), e the base fit's departure "
-                   "from rigid motion at that frame and body (where rigid tracks cannot follow a deforming body, "
-                   "as at an impact, they err by about that much), in every calibration and in the gate. Without a "
-                   "lens, or where no body departs by half the noise, nothing is weighted. Off by default: on "
-                   "the hidden damping of the video table it read no missing effect where unweighted discovery "
-                   "reads an unexplained discrepancy (README).")  # fmt: skip
+              help="Through a run's rigid lens: weigh every residual by σ/√(σ² + e²), e what the rigid tracks may "
+                   "err by at that frame and body (where they cannot follow a deforming body, as at an impact), in "
+                   "every calibration and in the gate; e as --weigh-by says. Without a lens, or where e stays "
+                   "below half the noise, nothing is weighted. Off by default until the video table's landings "
+                   "have been judged with it (README).")
+@click.option("--weigh-by", type=click.Choice(["tracks", "base"]), default="tracks", show_default=True,
+              help="With --weigh, e is 'tracks': how far the run's stretching tracks stray from its rigid ones, "
+                   "beyond their usual difference (from the images alone, the same for every model; with --lens "
+                   "auto, where rigid tracks are chosen), else the base fit's departure from rigid motion; 'base': "
+                   "the base fit's departure always (a stiff base, calibrated without the missing effect, barely "
+                   "deforms and weighs little).")  # fmt: skip
 @precision_option
 @click.option("--resume", is_flag=True,
               help="Continue the discovery run in --out (stopped, or to redo its outputs) from the calibrations it "
@@ -97,7 +102,7 @@ def _starts(text: str) -> tuple[float, ...]:
                    "same.")  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print report.json to stdout.")
 def discover(source, out, spec, learn, candidates, max_effects, res, starts, iterations, tracking, lens, split,
-             weigh, precision, resume, as_json):  # fmt: skip
+             weigh, weigh_by, precision, resume, as_json):  # fmt: skip
     """Find where simulation and measurement disagree, name the missing physical effect, add it, show the gap shrink.
 
     SOURCE is a fitted run folder (`causalgs fit`: the measurement is the tracked motion of its particles over the
@@ -144,7 +149,7 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     if 0 < res < 8:
         raise CausalGSError(f"--res {res}: give 0 (a run's own grid) or at least 8 cells")
     cfg = DiscoverConfig(res=res, starts=_starts(starts), iterations=iterations, max_effects=max_effects,
-                         weigh=weigh)  # fmt: skip
+                         weigh=weigh, weigh_by=weigh_by)  # fmt: skip
     _ti.init("cpu", precision, quiet=True)
     from causalgs.progress import progress_bar
 
@@ -202,6 +207,9 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
 @click.option("--lens", type=click.Choice(["auto", "rigid", "affine", "bent"]), default="auto", show_default=True,
               help="Video level: the refined tracks' lens, as `causalgs discover --lens` (auto: the stretching or "
                    "bent tracks where held-out cameras ask for them).")
+@click.option("--weigh", is_flag=True,
+              help="Video level: discover as `causalgs discover --weigh` (residuals weighed down where the rigid "
+                   "tracks and the stretching ones refined from the same images disagree, as at an impact).")
 @click.option("--level", type=click.Choice(["trajectory", "video"]), default="trajectory", show_default=True,
               help="trajectory: simulated particle tracks with noise (minutes a case); video: a rendered video, a "
                    "fit and discovery on the run, end to end (about 20 minutes a flight case on 2 cores).")
@@ -209,8 +217,8 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
               help="Video level: run nothing; collect the rows of these tables (repeat the option; one table run in "
                    "pieces with --only and --first-seed) into --out, each row taken only where its video was "
                    "rendered as the case is defined now, a later table's row replacing an earlier one.")
-def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, jobs, rigid_tracks, lens, level,
-                   merge):
+def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, jobs, rigid_tracks, lens, weigh,
+                   level, merge):
     """Reproduce the hidden-effect table: for every effect of the catalogue, a tossed block simulated with it and
     a model without it; negative controls; an effect outside the catalogue.
 
@@ -243,6 +251,8 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
         raise CausalGSError("--rigid-tracks is for --level trajectory: video tracks have a lens of their own (--lens)")
     if level == "trajectory" and lens != "auto":
         raise CausalGSError("--lens is for --level video: trajectory tracks are the simulator's own (--rigid-tracks)")
+    if level == "trajectory" and weigh:
+        raise CausalGSError("--weigh is for --level video: it weighs the residuals of tracks from video")
     if level == "video":
         from causalgs.discover.video_table import CASES, VideoTableConfig, run_video_table
     else:
@@ -258,7 +268,7 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
         _ti.init("cpu", "float32", quiet=True)
     if level == "video":
         vcfg = VideoTableConfig(seeds=seeds, first_seed=first_seed, only=names, control_seeds=control_seeds,
-                                jobs=jobs, discover=DiscoverConfig(res=res or 0),
+                                jobs=jobs, discover=DiscoverConfig(res=res or 0, weigh=weigh),
                                 truth_grid=not (run_grid or res), lens=lens)  # fmt: skip
         rows = run_video_table(out, vcfg, log=_console_log())
     else:

@@ -38,9 +38,13 @@ def calibration_options(spec: str, learn, cfg, start: dict | None = None) -> dic
     """What the results of a discovery run's calibrations depend on, besides the measurement: the base model
     (``spec``, ``learn``, the start values ``start``) and of ``cfg`` (a
     :class:`~causalgs.discover.search.DiscoverConfig`) the grid, the starting stiffnesses, the iteration budget and
-    the warm-up horizon, and whether residuals are weighted where rigid tracks cannot follow the bodies."""
-    return {"spec": spec, "learn": list(learn), "start": start, "res": cfg.res, "starts": list(cfg.starts),
-            "iterations": cfg.iterations, "warm": cfg.warm, "weigh": cfg.weigh}  # fmt: skip
+    the warm-up horizon, and whether residuals are weighted where rigid tracks cannot follow the bodies (and by
+    what)."""
+    out = {"spec": spec, "learn": list(learn), "start": start, "res": cfg.res, "starts": list(cfg.starts),
+           "iterations": cfg.iterations, "warm": cfg.warm, "weigh": cfg.weigh}  # fmt: skip
+    if cfg.weigh and cfg.weigh_by != "base":  # runs weighted by the base fit keep their key
+        out["weigh_by"] = cfg.weigh_by
+    return out
 
 
 def fingerprint(options: dict, x: np.ndarray, mix: np.ndarray | None = None, lens_kind: str = "rigid",

@@ -68,6 +68,11 @@ class Observation:
     # a rigid lens cannot follow a deforming body (:func:`causalgs.discover.search.lens_blind`). None: the noise
     # alone. Residuals are weighed by :meth:`residual_scale`.
     track_error: np.ndarray | None = None
+    # [T, B] a run refined both ways: how far its stretching tracks stray from its rigid ones, per frame and body,
+    # beyond their median over the frames (m per coordinate; :func:`causalgs.discover.video.disagreement`). Where the
+    # bodies deform, as at an impact, the images pull the two apart; that is what discovery's weights measure the
+    # rigid tracks' error by (``DiscoverConfig.weigh``). None: not refined both ways
+    disagreement: np.ndarray | None = None
     # [T] tracked motion: how the tracks' own error, which drifts smoothly over the frames and which no block of
     # residuals shows, varies in size from frame to frame (relative; :func:`causalgs.discover.video.drift_profile`).
     # The reported intervals carry draws of such an error, of the size of the noise, through the fit
@@ -142,6 +147,12 @@ class Observation:
                                     f"expected [{T}, {self.bodies}]")  # fmt: skip
             if not (np.isfinite(self.track_error).all() and (self.track_error >= 0).all()):
                 raise CausalGSError("observation: 'track_error' must be finite lengths >= 0 (m)")
+        if self.disagreement is not None:
+            self.disagreement = np.asarray(self.disagreement, dtype=np.float64)
+            if self.disagreement.shape != (T, self.bodies) or not (
+                    np.isfinite(self.disagreement).all() and (self.disagreement >= 0).all()):
+                raise CausalGSError(f"observation: 'disagreement' must hold finite lengths >= 0 (m), shaped "
+                                    f"[{T}, {self.bodies}]")  # fmt: skip
 
     @property
     def bodies(self) -> int:
@@ -181,6 +192,8 @@ class Observation:
             extra["clean"] = self.clean
         if self.drift is not None:
             extra["drift"] = self.drift
+        if self.disagreement is not None:
+            extra["disagreement"] = self.disagreement
         write_npz(Path(path), times=self.times, x=self.x, vol=self.vol, body=self.body,
                   observed=np.int64(self.observed), lo=np.array(self.lo), hi=np.array(self.hi),
                   density=np.float64(self.density), ground=np.float64(np.nan if self.ground is None else self.ground),
@@ -223,7 +236,7 @@ def load_observation(path) -> Observation:
             names=[str(s) for s in d["names"]] if "names" in d else [],
             truth=json.loads(str(d["truth_json"])) if "truth_json" in d else None, mix=d.get("mix"),
             lens_kind=str(d.get("lens_kind", "rigid")), shape_resolution=float(d.get("shape_resolution", 0.0)),
-            clean=d.get("clean"), drift=d.get("drift"), bend=d.get("bend"),
+            clean=d.get("clean"), drift=d.get("drift"), bend=d.get("bend"), disagreement=d.get("disagreement"),
         )  # fmt: skip
     except CausalGSError as e:
         raise CausalGSError(f"{path}: {e}") from None

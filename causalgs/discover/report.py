@@ -324,7 +324,9 @@ def markdown(report: dict) -> str:
         w = report.get("weights")
         if w:
             low = [f for f, v in enumerate(w["per_frame_min"]) if f > 0 and v < 0.5]
-            L.append(f"Every calibration and the gate weigh a residual by σ/√(σ² + e²), e the base fit's departure "
+            what = ("how far the run's stretching tracks stray from its rigid ones" if w.get("source") == "tracks"
+                    else "the base fit's departure")
+            L.append(f"Every calibration and the gate weigh a residual by σ/√(σ² + e²), e {what} "
                      f"at that frame and body: a residual of the size the tracks may err by there counts as much as "
                      f"the noise does elsewhere (weights down to {w['min_weight']:.2f}"
                      + (f"; below one half at frames {_ranges(low)}" if low else "") + ").")  # fmt: skip

@@ -693,6 +693,83 @@ def test_discovery_weighs_a_bounce_seen_through_a_lens_and_not_a_flight(tmp_path
             assert "fit_rms_weighted_m" not in eb
 
 
+def test_tracks_disagreement_is_where_stretching_and_rigid_tracks_part():
+    """Per frame and body, the RMS per coordinate of the stretching tracks' departure from the rigid ones, less its
+    median over the frames in quadrature, 0 at the first frame: an impact's frames stand out, a body that the two
+    agree on reads 0, and an offset common to every frame is the refinements' usual difference, not an error."""
+    from causalgs.discover.video import disagreement
+
+    rng = np.random.default_rng(0)
+    T, P = 12, 40
+    body = np.repeat([0, 1], P // 2)
+    rigid = rng.normal(size=(T, P, 3))
+    affine = rigid + 2e-4  # a common 0.2 mm offset everywhere
+    affine[5:7, body == 0] += rng.choice([-3e-3, 3e-3], size=(2, P // 2, 3))  # 3 mm at an impact, body 0
+    d = disagreement(rigid, affine, body)
+    assert d.shape == (T, 2) and (d[0] == 0).all()
+    want = np.sqrt(np.mean((3e-3 + np.array([-2e-4, 2e-4])) ** 2) - (2e-4) ** 2)  # less the usual difference
+    assert np.allclose(d[5:7, 0], want, rtol=0.05) and d[5:7, 0].min() > 2.9e-3
+    assert np.abs(np.delete(d[:, 0], [5, 6])).max() < 1e-9 and np.abs(d[:, 1]).max() < 1e-9
+
+
+def test_weighing_by_the_tracks_disagreement_or_the_base_departure():
+    """With an observation refined both ways, the weights' track error is the tracks' disagreement (capped at four
+    times the noise, None where it stays below half of it), the same whatever the model; without it, or by "base",
+    the base fit's departure; an unknown source is a one-line error, and so is a wrongly shaped disagreement."""
+    import dataclasses
+
+    from causalgs.discover.search import track_error, weighing
+
+    sigma = 5e-4
+    st, m, obs = _flight_and_bounce(noise=sigma)["bounce"]
+    d = np.zeros((14, 1))
+    d[6:8, 0] = [1.5e-3, 3e-3]
+    m.obs = dataclasses.replace(obs, disagreement=d)
+    e, source = weighing(st, sigma)
+    assert source == "tracks" and np.allclose(e[:, 0], np.minimum(d[:, 0], 4 * sigma))
+    e, source = weighing(st, sigma, "base")
+    assert source == "base" and np.allclose(e, track_error(st, sigma))
+    m.obs = dataclasses.replace(obs, disagreement=np.full((14, 1), 0.4 * sigma))
+    assert weighing(st, sigma) == (None, "tracks")
+    m.obs = obs
+    assert weighing(st, sigma)[1] == "base"
+    with pytest.raises(CausalGSError, match="weigh by 'pixels'"):
+        weighing(st, sigma, "pixels")
+    with pytest.raises(CausalGSError, match="disagreement"):
+        dataclasses.replace(obs, disagreement=d[1:])
+    with pytest.raises(CausalGSError, match="disagreement"):
+        dataclasses.replace(obs, disagreement=-d)
+
+
+def test_discovery_weighs_by_the_tracks_disagreement_where_the_observation_has_it(tmp_path):
+    """Through a lens, with the tracks' disagreement on the observation, the base is recalibrated weighted by it
+    (the report says so, and the weights are the disagreement's at its frames); a save and a load keep the
+    disagreement; the journal's key tells such a run from one weighted by the base fit and keeps an unweighted
+    run's key as it was."""
+    import dataclasses
+
+    from causalgs.discover.journal import Journal, calibration_options
+    from causalgs.discover.search import DiscoverConfig, discover
+
+    sigma = 5e-4
+    _, _, obs = _flight_and_bounce(noise=sigma)["bounce"]
+    d = np.zeros((14, 1))
+    d[6:8, 0] = [1.5e-3, 3e-3]
+    seen = dataclasses.replace(obs, disagreement=d)
+    cfg = DiscoverConfig(res=16, starts=(3e4,), iterations=2, warm=0.0, weigh=True)
+    journal = Journal(None, "")
+    report, _ = discover(seen, "gravity;ground:mu=0.3;walls", candidates=[], config=cfg, journal=journal)
+    w = report["weights"]
+    assert w["source"] == "tracks" and "base/weighted" in journal.entries
+    assert np.allclose(np.array(w["track_error_m"])[:, 0], np.minimum(d[:, 0], 4 * sigma))
+    assert w["per_frame_min"][7] == pytest.approx(1 / math.sqrt(17)) and w["per_frame_min"][3] == 1.0
+    seen.save(tmp_path / "obs.npz")
+    assert np.array_equal(load_observation(tmp_path / "obs.npz").disagreement, d)
+    keys = [calibration_options("s", (), c) for c in (cfg, dataclasses.replace(cfg, weigh_by="base"),
+                                                       dataclasses.replace(cfg, weigh=False))]  # fmt: skip
+    assert keys[0]["weigh_by"] == "tracks" and "weigh_by" not in keys[1] and "weigh_by" not in keys[2]
+
+
 def test_candidates_apply_only_where_the_base_lacks_them():
     base = Effects.from_spec("gravity;ground:mu=0.4;walls")
     keys = {c.key for c in select() if c.applies(base, ())}

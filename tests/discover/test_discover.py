@@ -136,6 +136,7 @@ def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_
         (["discover-table", "--out", str(out), "--only", "nonsense"], "unknown case"),
         (["discover-table", "--out", str(out), "--level", "video", "--rigid-tracks"], "is for --level trajectory"),
         (["discover-table", "--out", str(out), "--lens", "affine"], "is for --level video"),
+        (["discover-table", "--out", str(out), "--weigh"], "--weigh is for --level video"),
     ]
     for argv, msg in bad:
         r = CliRunner().invoke(cli, argv)

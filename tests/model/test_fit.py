@@ -826,6 +826,15 @@ def test_refinement_finds_a_displacement_the_velocity_field_missed(fitted, tmp_p
     assert np.allclose(auto.drift, drift_profile(xa[:, keep], xb[:, keep], n), rtol=1e-12)
     affine, _ = observation_from_run(run, refine=quick, lens_kind="affine")
     assert affine.lens_kind == "affine" and np.allclose(affine.x[0], obs.x[0]) and affine.bend is None
+    # where the rigid tracks are kept, how far the stretching ones stray from them, frame by frame (refined one way
+    # only: nothing to tell)
+    from causalgs.discover.video import disagreement
+
+    assert obs.disagreement is None and affine.disagreement is None
+    if auto.lens_kind == "rigid":
+        assert np.allclose(auto.disagreement, disagreement(auto.x, affine.x, auto.body), rtol=1e-9, atol=1e-12)
+    else:
+        assert auto.disagreement is None
     # tracks that also bend each body: the affine lens, with every point's body for the bend
     bent, bent_model = observation_from_run(run, refine=quick, lens_kind="bent")
     assert bent.lens_kind == "affine" and bent.bend is not None and len(bent.bend) == bent.points
