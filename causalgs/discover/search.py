@@ -880,10 +880,13 @@ def track_error(state: State, sigma: float) -> np.ndarray | None:
     the viscosity at its cap (302 Pa·s, truth 200), the Poisson ratio at its lower bound and the ground 16 mm low."""
     if state.model.obs.mix is None:
         return None
-    dep = lens_blind(state)
-    if not (dep > WEIGH_MIN * sigma).any():
-        return None
-    return np.concatenate([np.zeros((1, dep.shape[1])), np.minimum(dep, WEIGH_CAP * sigma)])
+    dep = _capped(lens_blind(state), sigma)
+    return None if dep is None else np.concatenate([np.zeros((1, dep.shape[1])), dep])
+
+
+def _capped(e: np.ndarray, sigma: float) -> np.ndarray | None:
+    """A track error ``e`` capped at ``WEIGH_CAP`` times the noise, or None where it stays below ``WEIGH_MIN`` of it."""
+    return np.minimum(e, WEIGH_CAP * sigma) if (e > WEIGH_MIN * sigma).any() else None
 
 
 WEIGH_BY = ("tracks", "base")
@@ -898,8 +901,7 @@ def weighing(state: State, sigma: float, by: str = "tracks") -> tuple[np.ndarray
         raise CausalGSError(f"weigh by '{by}' is not one of {', '.join(WEIGH_BY)}")
     obs = state.model.obs
     if by == "tracks" and obs.mix is not None and obs.disagreement is not None:
-        d = obs.disagreement
-        return (np.minimum(d, WEIGH_CAP * sigma) if (d > WEIGH_MIN * sigma).any() else None), "tracks"
+        return _capped(obs.disagreement, sigma), "tracks"
     return track_error(state, sigma), "base"
 
 
