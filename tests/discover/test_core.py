@@ -1056,7 +1056,7 @@ def test_finalists_add_the_candidate_whose_signature_fits_the_residual():
                 s("force", 0.006), s("sticky", -6.0)]  # fmt: skip
     sig = {"v": 0.986, "vv": 0.986, "contact": 0.0, "const": 0.73, "internal": 0.59}
     keys = [f.candidate.key for f in pick_finalists(screened, sig, DiscoverConfig())]
-    assert keys == ["plasticity", "sticky", "quadratic_drag", "linear_drag"]
+    assert keys == ["plasticity", "quadratic_drag", "sticky", "linear_drag"]
     # A residual whose shape fits no driver well (noise) adds nothing beyond the screen's own finalists and the
     # structural candidate.
     flat = {"v": 0.2, "vv": 0.21, "contact": 0.0, "const": 0.3, "internal": 0.1}
@@ -1068,6 +1068,40 @@ def test_finalists_add_the_candidate_whose_signature_fits_the_residual():
     assert [f.candidate.key for f in pick_finalists(worse, const, one)] == ["plasticity", "sticky"]
     # Without the structural candidate among those screened (no ground), nothing structural is added.
     assert [f.candidate.key for f in pick_finalists(worse[:2], const, one)] == ["plasticity"]
+
+
+def test_the_best_two_by_screen_gain_are_refitted_whenever_it_is_positive():
+    """The screen only orders the candidates: the best two are refitted whenever their gain is positive, a third
+    only from ``min_gain`` up. Off a stiff base that mimicked damping (the video-level damping landing, seed 2,
+    weighted), damping screened second at +0.016, after plasticity's +0.39."""
+    from causalgs.discover.candidates import BY_KEY
+    from causalgs.discover.screen import Screened
+    from causalgs.discover.search import DiscoverConfig, pick_finalists
+
+    def s(key, gain):
+        return Screened(BY_KEY[key], gain, {}, None, None)
+
+    flat = {"v": 0.1, "vv": 0.1, "contact": 0.0, "const": 0.1, "internal": 0.0}  # no signature brings any in
+    cfg = DiscoverConfig()
+    assert cfg.min_finalists == 2 and cfg.finalists == 3 and cfg.min_gain == 0.02
+
+    def keys(screened, c=cfg):
+        return [f.candidate.key for f in pick_finalists(screened, flat, c)]
+
+    assert keys([s("plasticity", 0.392), s("damping", 0.016), s("force", 0.007), s("linear_drag", 0.001)]) == [
+        "plasticity", "damping"]  # fmt: skip
+    # a third from min_gain up, never more than ``finalists``
+    assert keys([s("plasticity", 0.4), s("damping", 0.3), s("force", 0.02), s("linear_drag", 0.019)]) == [
+        "plasticity", "damping", "force"]  # fmt: skip
+    assert keys([s("plasticity", 0.4), s("damping", 0.3), s("force", 0.25), s("linear_drag", 0.2)]) == [
+        "plasticity", "damping", "force"]  # fmt: skip
+    # a gain of zero or below never brings a candidate by its rank
+    assert keys([s("force", 0.008), s("damping", 0.0), s("plasticity", -0.1)]) == ["force"]
+    assert keys([s("force", -0.01), s("damping", -0.2)]) == []
+    # the order of the list handed in does not matter
+    assert keys([s("force", 0.007), s("damping", 0.016), s("plasticity", 0.392)]) == ["plasticity", "damping"]
+    # the former rule (every finalist from min_gain up) is one setting away
+    assert keys([s("plasticity", 0.392), s("damping", 0.016)], DiscoverConfig(min_finalists=0)) == ["plasticity"]
 
 
 def test_a_structural_refit_starts_first_from_a_scan_of_its_own():
