@@ -821,7 +821,7 @@ def choose(passed: list, cfg: DiscoverConfig) -> tuple:
 
 def pick_finalists(screened, signatures: dict, cfg: DiscoverConfig) -> list:
     """The candidates to refit: the best ``cfg.finalists`` by screen gain (the first ``cfg.min_finalists`` of them
-    where their gain is positive, the others where it is at least ``cfg.min_gain``), every
+    where their gain is positive, the others where it is at least ``cfg.min_gain``; ``screened`` in any order), every
     structural one (``Candidate.replaces``), then any other whose driver's signature share is at least
     ``cfg.signature_min`` and within ``cfg.signature_tie`` of the best share among the screened candidates (and
     whose screen gain is not negative: a change that the screen finds worse than the base is not what the residual's
