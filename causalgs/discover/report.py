@@ -387,8 +387,14 @@ def markdown(report: dict) -> str:
         d0 = report["discovered"][0]
         L += ["## Base parameters before and after (the missing effect biases them)", "",
               "| parameter | before | after |", "|---|---|---|"]  # fmt: skip
-        after = report["discovered"][-1]["base_after"]
-        L += [f"| {k} | {v:.4g} | {after.get(k, float('nan')):.4g} |" for k, v in d0["base_before"].items()]
+        before, after = d0["base_before"], report["discovered"][-1]["base_after"]
+        # a structural effect replaces a base term (sticky ground the Coulomb ground): its parameters are in one
+        # model only, shown as "—" in the other
+        L += [f"| {k} | {_cell(before, k)} | {_cell(after, k)} |" for k in {**before, **after}]
+        gone = [k for k in before if k not in after]
+        if gone:
+            L += ["", f"The repaired model has no {' or '.join(f'`{k}`' for k in gone)}: a discovered effect "
+                  "replaced the term they belong to."]  # fmt: skip
         L.append("")
         L += [f"Repaired model's effects: `{report['final_spec']}`", ""]
         if report.get("refit_config"):
@@ -397,6 +403,11 @@ def markdown(report: dict) -> str:
     L += ["Plots: `error.png` (error per frame), `residuals.png` (held-out residual heat), `paths.png` (centroids).",
           "", f"Took {report['seconds']:.0f} s."]  # fmt: skip
     return "\n".join(L) + "\n"
+
+
+def _cell(values: dict, key: str) -> str:
+    """A parameter's value, or "—" where the model has no such parameter."""
+    return f"{values[key]:.4g}" if key in values else "—"
 
 
 def _ranges(frames) -> str:

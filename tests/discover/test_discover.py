@@ -356,6 +356,16 @@ def test_the_report_says_how_each_other_passer_was_told_apart():
            "smooth error" in text
     d["interval_sources"].update(se_tracking={"linear_drag.c": None})
     assert "interval (95%)" not in markdown(rep)
+    # the base's parameters before and after: the effect's own added, a replaced term's shown as gone, no "nan"
+    d["base_after"] = {"body 0.E": 2.6e4, "linear_drag.c": 2.5}
+    text = markdown(rep)
+    assert "| body 0.E | 4e+05 | 2.6e+04 |" in text and "| linear_drag.c | — | 2.5 |" in text
+    assert "nan" not in text and "The repaired model has no" not in text
+    d.update(base_before={"body 0.E": 4e5, "ground.mu": 8.4, "ground.d": -0.004},
+             base_after={"body 0.E": 4e4, "ground_sticky.d": 3e-4})
+    text = markdown(rep)
+    assert "| ground.mu | 8.4 | — |" in text and "| ground_sticky.d | — | 0.0003 |" in text and "nan" not in text
+    assert "The repaired model has no `ground.mu` or `ground.d`: a discovered effect replaced" in text
 
 
 def test_the_report_says_the_measurement_was_refined_and_what_it_gained():
