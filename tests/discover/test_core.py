@@ -1676,3 +1676,33 @@ def test_a_stopped_calibration_goes_on_from_its_last_kept_state(tmp_path, monkey
     again = J.Journal(tmp_path / "progress.json", "key", resume=True).calibrate("scan", m, start, **options)
     assert len(calls) <= spent - 10 and again.evaluations == whole.evaluations
     assert torch.allclose(again.theta, whole.theta, atol=1e-4)
+
+
+def test_a_candidates_screen_step_stays_within_its_range():
+    """A push along the motion looks like a negative drag: the free least-squares step puts the drag coefficient
+    below zero, which no drag can be. The step is held at the range's end, and the gain is what the candidate can
+    really explain (nearly nothing), while the push itself explains nearly all."""
+    from causalgs.discover.candidates import BY_KEY
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.screen import _bounded_residual_after, _residual_after, screen, transfer
+
+    obs, truth, th = _thrown_cube("gravity;force:b=3.0,0.0,0.0;walls", (-0.2, 0.0, 0.5), (1.2, 0.0, 0.4),
+                                  observed=12)  # fmt: skip
+    base = PhysicsModel(obs, "gravity;walls", res=16)
+    theta = transfer(truth, th, base)
+    out = {s.candidate.key: s for s in screen(base, theta, [BY_KEY["linear_drag"], BY_KEY["force"]],
+                                                 range(1, obs.observed))}  # fmt: skip
+    drag, force = out["linear_drag"], out["force"]
+    assert drag.step["linear_drag.c"] >= 0.0 and drag.gain < 0.05, (drag.step, drag.gain)
+    assert force.gain > 0.9 and force.step["force.b[0]"] == pytest.approx(3.0, rel=0.2), (force.step, force.gain)
+    # the bounded solve: the free solution where it is within the bounds, a bound held where it is not
+    rng = np.random.default_rng(0)
+    J, r = rng.normal(size=(40, 3)), rng.normal(size=40)
+    free_e, free = _residual_after(J, r)
+    e, sol = _bounded_residual_after(J, r, np.full(3, -np.inf), np.full(3, np.inf))
+    assert e == pytest.approx(free_e) and np.allclose(sol, free)
+    lo = np.array([-np.inf, -np.inf, free[2] + 1.0])
+    e, sol = _bounded_residual_after(J, r, lo, np.full(3, np.inf))
+    assert sol[2] == pytest.approx(lo[2]) and e >= free_e
+    fixed, *_ = np.linalg.lstsq(J[:, :2], r - J[:, 2] * lo[2], rcond=None)  # the others re-solved with it held
+    assert np.allclose(sol[:2], fixed, atol=1e-8)
