@@ -123,7 +123,7 @@ def screen(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate],
             gain = (rb - rr) / max(rb, 1e-300)
             out.append(Screened(c, gain, {p: model.values(th)[p] for p in c.params}, model, th))
             continue
-        best = None
+        best, bounds = None, _step_bounds(model, c, th, Jb)
         for probes in c.screen_probes():  # a threshold's probes: the one that explains most counts
             cols = []
             for p, i, probe in zip(c.params, idx, probes, strict=True):
@@ -136,7 +136,7 @@ def screen(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate],
                 except CausalGSError:
                     cols.append(np.zeros_like(xc))
             Jc = np.stack(cols, axis=1)
-            rr, sol = _bounded_residual_after(np.concatenate([Jb, Jc], axis=1), rc, *_step_bounds(model, c, th, Jb))
+            rr, sol = _bounded_residual_after(np.concatenate([Jb, Jc], axis=1), rc, *bounds)
             gain = (rb - rr) / max(rb, 1e-300)
             if best is None or gain > best[0]:
                 best = (gain, sol, probes)
