@@ -123,16 +123,17 @@ def jacobian(model: PhysicsModel, theta: torch.Tensor, frames, indices=None, bas
     """[N, k] forward-difference derivatives of :func:`positions` with respect to the entries ``indices`` of θ;
     ``base``: the positions at θ when already known. A step that blows the simulation up is taken backwards."""
     indices = list(range(len(theta))) if indices is None else list(indices)
-    x0 = positions(model, theta, frames) if base is None else base
+    x0 = positions(model, theta, frames)  # also θ's substep schedule, which the differences hold (Simulator.holding)
     cols = []
-    for i in indices:
-        th = theta.clone()
-        th[i] += step
-        try:
-            cols.append((positions(model, th, frames) - x0) / step)
-        except CausalGSError:
-            th[i] -= 2 * step
-            cols.append((x0 - positions(model, th, frames)) / step)
+    with model.sim.holding(model.sim.last_plan):
+        for i in indices:
+            th = theta.clone()
+            th[i] += step
+            try:
+                cols.append((positions(model, th, frames) - x0) / step)
+            except CausalGSError:
+                th[i] -= 2 * step
+                cols.append((x0 - positions(model, th, frames)) / step)
     return np.stack(cols, axis=1) if cols else np.zeros((len(x0), 0))
 
 

@@ -26,6 +26,7 @@ grid) are detected after every frame and raised as one-line :class:`~causalgs.er
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 from dataclasses import dataclass, field, fields
@@ -59,6 +60,9 @@ def segment_specs(segment: int) -> tuple[FieldSpec, ...]:
 
 
 SCRATCH = (FieldSpec("mpm_affine", (3, 3), doc="MPM scratch: stress and APIC momentum term of the current substep"),)
+
+
+HOLD_SLACK = 1.25  # a held substep count may stand for up to this many more than the CFL limit asks for
 
 
 @dataclass
@@ -146,6 +150,8 @@ class Simulator:
         self.counter = 0  # substeps run by this simulator (any state change bumps it)
         self.schedule: list[tuple[int, float]] = []  # (substeps, dt) of every frame since the last reset
         self._recording: list[Segment] | None = None
+        self.last_plan: list[int] = []  # the substeps of each interval of the last rollout
+        self._held_plan: list[int] | None = None
 
     # -- state --------------------------------------------------------------------------------------------------
     def _seg(self):
@@ -365,10 +371,16 @@ class Simulator:
         c = self.wave_speed()
         self._recording = [Segment(start=self._read_slot(0))]
         out: dict[str, list[torch.Tensor]] = {k: [] for k in outputs}
+        plan: list[int] = []
         try:
             for i, t in enumerate(times):
                 if t > self.time:
                     m, dt = self._plan(t - self.time, c, f"output {i} (t = {t:.4g} s)")
+                    held = self._held_plan[len(plan)] if len(plan) < len(self._held_plan or ()) else None
+                    if held is not None and held * HOLD_SLACK >= m:
+                        m = held  # a held schedule, within HOLD_SLACK of the CFL limit
+                        dt = (t - self.time) / m
+                    plan.append(m)
                     self.step(m, dt, check=lambda dt, i=i: self._check(f"the interval before output {i}", dt, c))
                     self._check(f"the interval before output {i}", dt, c)
                     self.time = t  # no drift from summing dt
@@ -377,7 +389,21 @@ class Simulator:
                     out[k].append(val)
         finally:
             segments, self._recording = self._recording, None
+            self.last_plan = plan
         return {k: torch.stack(v) for k, v in out.items()}, Tape(segments, times, self.counter)
+
+    @contextlib.contextmanager
+    def holding(self, plan: list[int]):
+        """Rollouts inside take ``plan``'s substeps per interval (a :attr:`last_plan`) wherever the CFL limit
+        allows within :data:`HOLD_SLACK`. For finite differences: the substep count jumps where a parameter moves
+        the CFL limit across an integer, and with it symplectic Euler's O(dt) gravity bias (g T²/2 · (1/m − 1/(m+1))
+        per interval of T seconds: 94.5 µm at 24 fps from 9 to 10 substeps), which a difference would read as a
+        sensitivity to the parameter; the autodiff path holds its schedule the same way."""
+        prev, self._held_plan = self._held_plan, list(plan)
+        try:
+            yield
+        finally:
+            self._held_plan = prev
 
     def backward(self, tape: Tape, grads: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Adjoints of a rollout. ``grads``: dL/d(output) as ``{name: [T, n, ...]}`` for any of x, v, C, F (missing

@@ -1706,3 +1706,40 @@ def test_a_candidates_screen_step_stays_within_its_range():
     assert sol[2] == pytest.approx(lo[2]) and e >= free_e
     fixed, *_ = np.linalg.lstsq(J[:, :2], r - J[:, 2] * lo[2], rcond=None)  # the others re-solved with it held
     assert np.allclose(sol[:2], fixed, atol=1e-8)
+
+
+def test_a_jacobian_holds_the_substep_schedule_of_its_point():
+    """A stiffness step that moves the CFL limit across an integer count of substeps changes symplectic Euler's
+    O(dt) gravity bias: every point of a free flight moves like a vertical throw. The differences of one Jacobian
+    hold θ's schedule (``Simulator.holding``), so a stiffness in a free flight stays inert across such a step,
+    while the rollout without the hold shows the jump."""
+    import dataclasses
+
+    from causalgs import _ti
+    from causalgs.discover.calibrate import UNIT, fit_frames, inert_step, jacobian, positions
+    from causalgs.discover.model import PhysicsModel
+
+    _ti.init("cpu", "float32")
+    obs = _flight(frames=10, noise=0.001, seed=2)
+    obs = dataclasses.replace(obs, mix=np.ones((obs.points, 1)), noise=0.002)
+    m = PhysicsModel(obs, "gravity;walls", res=16)
+    th = m.initial(E=3e4)
+    fr = fit_frames(m)
+    x0 = positions(m, th, fr)
+    plan = list(m.sim.last_plan)
+    assert plan and all(k >= 1 for k in plan)
+    for step in (0.05, 0.1, 0.2, 0.4):  # the first stiffness step that changes the substep count
+        t = th.clone()
+        t[m.index("cube.E")] += step
+        x = positions(m, t, fr)
+        if m.sim.last_plan != plan:
+            break
+    else:
+        pytest.fail("no stiffness step up to 0.4 changed the substep count")
+    assert np.abs(x - x0).max() * UNIT > inert_step(m)  # unheld: the jump a difference would read as stiffness
+    with m.sim.holding(plan):
+        xh = positions(m, t, fr)
+        assert m.sim.last_plan == plan
+    assert np.abs(xh - x0).max() * UNIT < inert_step(m)
+    J = jacobian(m, th, fr, [m.index("cube.E")], step=step)
+    assert np.abs(J).max() * UNIT < inert_step(m)
