@@ -120,8 +120,9 @@ def targets(obs, frames) -> np.ndarray:
 
 def jacobian(model: PhysicsModel, theta: torch.Tensor, frames, indices=None, base=None,
              step: float = JAC_STEP) -> np.ndarray:  # fmt: skip
-    """[N, k] forward-difference derivatives of :func:`positions` with respect to the entries ``indices`` of θ;
-    ``base``: the positions at θ when already known. A step that blows the simulation up is taken backwards."""
+    """[N, k] forward-difference derivatives of :func:`positions` with respect to the entries ``indices`` of θ, at
+    θ's substep schedule (:meth:`~causalgs.sim.mpm.Simulator.holding`). ``base`` (the positions at θ) is not used:
+    θ is rolled out again for its schedule. A step that blows the simulation up is taken backwards."""
     indices = list(range(len(theta))) if indices is None else list(indices)
     x0 = positions(model, theta, frames)  # also θ's substep schedule, which the differences hold (Simulator.holding)
     cols = []
