@@ -121,12 +121,17 @@ def targets(obs, frames) -> np.ndarray:
 def jacobian(model: PhysicsModel, theta: torch.Tensor, frames, indices=None, base=None,
              step: float = JAC_STEP) -> np.ndarray:  # fmt: skip
     """[N, k] forward-difference derivatives of :func:`positions` with respect to the entries ``indices`` of θ, at
-    θ's substep schedule (:meth:`~causalgs.sim.mpm.Simulator.holding`). ``base`` (the positions at θ) is not used:
-    θ is rolled out again for its schedule. A step that blows the simulation up is taken backwards."""
+    θ's substep schedule (:meth:`~causalgs.sim.mpm.Simulator.holding`). ``base``: the positions at θ when already
+    known (used where the model's last rollout was at θ over ``frames``, whose schedule it keeps; otherwise θ is
+    rolled out again for its schedule). A step that blows the simulation up is taken backwards."""
     indices = list(range(len(theta))) if indices is None else list(indices)
-    x0 = positions(model, theta, frames)  # also θ's substep schedule, which the differences hold (Simulator.holding)
+    last = getattr(model, "plan_of", None)
+    known = (base is not None and last is not None and frames is not None and last[1] == tuple(int(f) for f in frames)
+             and torch.equal(last[0], theta.detach().double()))  # fmt: skip
+    x0 = base if known else positions(model, theta, frames)
+    plan = model.plan_of[2]
     cols = []
-    with model.sim.holding(model.sim.last_plan):
+    with model.sim.holding(plan):
         for i in indices:
             th = theta.clone()
             th[i] += step

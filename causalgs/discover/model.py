@@ -109,6 +109,7 @@ class PhysicsModel:
         cfg = SimConfig(res=self.res, lo=obs.lo, hi=obs.hi, segment=SEGMENT, cfl=cfl, max_substeps=max_substeps,
                         material="neo_hookean", effects=self.effects.spec())  # fmt: skip
         self.sim = Simulator(store, cfg)
+        self.plan_of = None  # (θ, frames, substeps per interval) of the last rollout
         self._owner = _OWNER
         dt = _ti.torch_dtype()
         self.x0 = torch.as_tensor(obs.x[0], dtype=dt)  # where the simulated material starts
@@ -339,6 +340,7 @@ class PhysicsModel:
         times = [float(obs.times[f] - obs.times[0]) for f in frames]
         x, _, _ = simulate(self.sim, self.x0, u["v0"].to(dt), u["E"].to(dt), u["nu"].to(dt), density, times,
                            u["params"].to(dt))  # fmt: skip
+        self.plan_of = (theta.detach().double().clone(), tuple(frames), list(self.sim.last_plan))
         return self.see(x.double()) if lensed else x.double()
 
     def see(self, x: torch.Tensor) -> torch.Tensor:
