@@ -125,11 +125,11 @@ def jacobian(model: PhysicsModel, theta: torch.Tensor, frames, indices=None, bas
     known (used where the model's last rollout was at θ over ``frames``, whose schedule it keeps; otherwise θ is
     rolled out again for its schedule). A step that blows the simulation up is taken backwards."""
     indices = list(range(len(theta))) if indices is None else list(indices)
-    last = getattr(model, "plan_of", None)
+    last = model.plan_of  # (θ, frames, plan) of the model's last rollout
     known = (base is not None and last is not None and frames is not None and last[1] == tuple(int(f) for f in frames)
              and torch.equal(last[0], theta.detach().double()))  # fmt: skip
     x0 = base if known else positions(model, theta, frames)
-    plan = model.plan_of[2]
+    plan = model.plan_of[2]  # θ's, either way
     cols = []
     with model.sim.holding(plan):
         for i in indices:
