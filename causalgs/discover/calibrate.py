@@ -118,10 +118,29 @@ def targets(obs, frames) -> np.ndarray:
     return (x if s is None else x * s).reshape(-1) / UNIT
 
 
+def change(model: PhysicsModel, theta: torch.Tensor, moved: torch.Tensor, frames, x0: np.ndarray,
+           plan: list[int]) -> np.ndarray:  # fmt: skip
+    """:func:`positions` at ``moved`` minus those at ``theta`` (``x0``, rolled out at the substep schedule ``plan``),
+    both at one schedule. The CFL limit follows the parameters (a stiffness through the wave speed, a viscosity
+    through its own limit), and a count of substeps that jumps changes symplectic Euler's O(dt) gravity bias, which
+    a difference would read as a sensitivity (:meth:`~causalgs.sim.mpm.Simulator.holding`). So ``moved`` is rolled
+    out holding ``plan``; where it needs more substeps than the hold allows, θ is rolled out again at ``moved``'s
+    finer schedule. The model's ``plan_of`` is ``moved``'s afterwards either way."""
+    with model.sim.holding(plan):
+        x = positions(model, moved, frames)
+    finer = list(model.sim.last_plan)
+    if finer != list(plan):
+        kept = model.plan_of
+        with model.sim.holding(finer):
+            x0 = positions(model, theta, frames)
+        model.plan_of = kept
+    return x - x0
+
+
 def jacobian(model: PhysicsModel, theta: torch.Tensor, frames, indices=None, base=None,
              step: float = JAC_STEP) -> np.ndarray:  # fmt: skip
-    """[N, k] forward-difference derivatives of :func:`positions` with respect to the entries ``indices`` of θ, at
-    θ's substep schedule (:meth:`~causalgs.sim.mpm.Simulator.holding`). ``base``: the positions at θ when already
+    """[N, k] forward-difference derivatives of :func:`positions` with respect to the entries ``indices`` of θ, each
+    at one substep schedule (:func:`change`). ``base``: the positions at θ when already
     known (used where the model's last rollout was at θ over ``frames``, whose schedule it keeps; otherwise θ is
     rolled out again for its schedule). A step that blows the simulation up is taken backwards."""
     indices = list(range(len(theta))) if indices is None else list(indices)
@@ -131,15 +150,14 @@ def jacobian(model: PhysicsModel, theta: torch.Tensor, frames, indices=None, bas
     x0 = base if known else positions(model, theta, frames)
     plan = model.plan_of[2]  # θ's, either way
     cols = []
-    with model.sim.holding(plan):
-        for i in indices:
-            th = theta.clone()
-            th[i] += step
-            try:
-                cols.append((positions(model, th, frames) - x0) / step)
-            except CausalGSError:
-                th[i] -= 2 * step
-                cols.append((x0 - positions(model, th, frames)) / step)
+    for i in indices:
+        th = theta.clone()
+        th[i] += step
+        try:
+            cols.append(change(model, theta, th, frames, x0, plan) / step)
+        except CausalGSError:
+            th[i] -= 2 * step
+            cols.append(-change(model, theta, th, frames, x0, plan) / step)
     return np.stack(cols, axis=1) if cols else np.zeros((len(x0), 0))
 
 

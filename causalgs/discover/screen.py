@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from scipy.optimize import lsq_linear
 
-from causalgs.discover.calibrate import jacobian, positions, targets
+from causalgs.discover.calibrate import change, jacobian, positions, targets
 from causalgs.discover.candidates import Candidate
 from causalgs.discover.model import PhysicsModel
 from causalgs.errors import CausalGSError
@@ -116,6 +116,7 @@ def screen(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate],
             models[c.key] = model
         th = transfer(base, theta, model)
         xc = positions(model, th, frames)
+        plan = model.plan_of[2]
         rc = target - xc
         idx = [model.index(p) for p in c.params]
         if c.replaces is not None:  # structural: compare the base-projected residuals with and without the change
@@ -132,7 +133,7 @@ def screen(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate],
                 th2[i] = knob.internal(probe)
                 start = model.values(th)[p]
                 try:
-                    cols.append((positions(model, th2, frames) - xc) / (probe - start))
+                    cols.append(change(model, th, th2, frames, xc, plan) / (probe - start))
                 except CausalGSError:
                     cols.append(np.zeros_like(xc))
             Jc = np.stack(cols, axis=1)

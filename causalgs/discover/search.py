@@ -356,6 +356,7 @@ def rest_shape_draws(model: PhysicsModel, theta: torch.Tensor, J: np.ndarray, si
     fr = fit_frames(model)
     fut = list(fut)
     base = positions(model, theta, fr + fut)
+    plan = model.plan_of[2]  # every draw keeps this substep schedule (see calibrate.jacobian)
     n_fit = len(fr) * model.obs.points * 3
     pinv = refit_map(model, J)
     rng = np.random.default_rng(seed)
@@ -372,7 +373,8 @@ def rest_shape_draws(model: PhysicsModel, theta: torch.Tensor, J: np.ndarray, si
                 model.x0 = torch.as_tensor(extent_draw(noisy.double().numpy(), obs.body, obs.vol, extent, rng),
                                            dtype=x0.dtype)  # fmt: skip
             try:
-                d = positions(model, theta, fr + fut) - base
+                with model.sim.holding(plan):
+                    d = positions(model, theta, fr + fut) - base
             except CausalGSError:  # a draw that blows the simulation up says nothing about the spread
                 continue
             shift = -(pinv @ d[:n_fit])

@@ -1743,3 +1743,40 @@ def test_a_jacobian_holds_the_substep_schedule_of_its_point():
     assert np.abs(xh - x0).max() * UNIT < inert_step(m)
     J = jacobian(m, th, fr, [m.index("cube.E")], step=step)
     assert np.abs(J).max() * UNIT < inert_step(m)
+
+
+def test_a_difference_past_the_hold_is_taken_at_the_finer_schedule():
+    """A viscosity probe can ask for more substeps than the hold allows (9 → 12 an interval here, past
+    ``HOLD_SLACK``): :func:`change` then rolls the point out again at the probe's finer schedule. In a free flight
+    (a rigid motion, no strain rate) viscosity moves nothing, so the difference is inert, while the plain one
+    carries the jump of the gravity bias. The screen and every Jacobian take their differences this way."""
+    import dataclasses
+
+    from causalgs import _ti
+    from causalgs.discover.calibrate import UNIT, change, fit_frames, inert_step, positions
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.sim.mpm import HOLD_SLACK
+
+    _ti.init("cpu", "float32")
+    obs = _flight(frames=10, noise=0.001, seed=2)
+    obs = dataclasses.replace(obs, mix=np.ones((obs.points, 1)), noise=0.002)
+    damping = BY_KEY["damping"]
+    base = PhysicsModel(obs, "gravity;walls", res=16)
+    m = PhysicsModel(obs, damping.spec(base.effects), damping.learn(base.learn), res=16)
+    th = m.initial(E=3e4)
+    fr = fit_frames(m)
+    x0 = positions(m, th, fr)
+    plan = list(m.sim.last_plan)
+    moved = th.clone()
+    i = m.index("damping.eta")
+    moved[i] = m.knobs[i].internal(100.0)
+    x = positions(m, moved, fr)
+    assert all(k > h * HOLD_SLACK for k, h in zip(m.sim.last_plan, plan, strict=True)), (m.sim.last_plan, plan)
+    assert np.abs(x - x0).max() * UNIT > inert_step(m)  # the plain difference: the jump
+    kept = x0.copy()
+    d = change(m, th, moved, fr, x0, plan)
+    assert np.abs(d).max() * UNIT < 0.05 * inert_step(m)
+    assert np.array_equal(x0, kept)
+    assert torch.equal(m.plan_of[0], moved.detach().double()) and m.plan_of[2] == m.sim.last_plan
+    d_near = change(m, th, th.clone(), fr, x0, plan)  # θ against itself: no difference at all
+    assert np.abs(d_near).max() == 0.0
