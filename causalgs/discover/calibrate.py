@@ -140,9 +140,9 @@ def change(model: PhysicsModel, theta: torch.Tensor, moved: torch.Tensor, frames
 def jacobian(model: PhysicsModel, theta: torch.Tensor, frames, indices=None, base=None,
              step: float = JAC_STEP) -> np.ndarray:  # fmt: skip
     """[N, k] forward-difference derivatives of :func:`positions` with respect to the entries ``indices`` of θ, each
-    at one substep schedule (:func:`change`). ``base``: the positions at θ when already
-    known (used where the model's last rollout was at θ over ``frames``, whose schedule it keeps; otherwise θ is
-    rolled out again for its schedule). A step that blows the simulation up is taken backwards."""
+    at one substep schedule (:func:`change`). ``base``: the positions at θ when already known (used where the
+    model's last rollout was at θ over ``frames``, whose schedule it keeps; otherwise θ is rolled out again for its
+    schedule). A step that blows the simulation up is taken backwards."""
     indices = list(range(len(theta))) if indices is None else list(indices)
     last = model.plan_of  # (θ, frames, plan) of the model's last rollout
     known = (base is not None and last is not None and frames is not None and last[1] == tuple(int(f) for f in frames)

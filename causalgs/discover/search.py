@@ -356,7 +356,7 @@ def rest_shape_draws(model: PhysicsModel, theta: torch.Tensor, J: np.ndarray, si
     fr = fit_frames(model)
     fut = list(fut)
     base = positions(model, theta, fr + fut)
-    plan = model.plan_of[2]  # every draw keeps this substep schedule (see calibrate.jacobian)
+    plan = model.plan_of[2]  # every draw keeps this substep schedule (see calibrate.change)
     n_fit = len(fr) * model.obs.points * 3
     pinv = refit_map(model, J)
     rng = np.random.default_rng(seed)
