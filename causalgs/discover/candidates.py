@@ -32,6 +32,11 @@ class Candidate:
     # a yield stress explains depends on how far below the rollout's stresses it is, and one probe may see no flow.
     probes: tuple[tuple[float, ...], ...] = ()
 
+    def confused(self, other: Candidate) -> bool:
+        """Whether the catalogue names ``other`` as confusable with this one (either way; by key or effect)."""
+        return (other.key in self.confused_with or other.effect in self.confused_with
+                or self.key in other.confused_with or self.effect in other.confused_with)  # fmt: skip
+
     def screen_probes(self) -> tuple[tuple[float, ...], ...]:
         """The probe values the screen tries: :attr:`probe` first, then :attr:`probes`."""
         return (self.probe, *self.probes)

@@ -822,18 +822,27 @@ def choose(passed: list, cfg: DiscoverConfig) -> tuple:
 
 
 def pick_finalists(screened, signatures: dict, cfg: DiscoverConfig) -> list:
-    """The candidates to refit: the best ``cfg.finalists`` by screen gain (the first ``cfg.min_finalists`` of them
-    where their gain is positive, the others where it is at least ``cfg.min_gain``; ``screened`` in any order), every
-    structural one (``Candidate.replaces``), then any other whose driver's signature share is at least
-    ``cfg.signature_min`` and within ``cfg.signature_tie`` of the best share among the screened candidates (and
-    whose screen gain is not negative: a change that the screen finds worse than the base is not what the residual's
-    shape asks for)."""
-    ranked = sorted((s for s in screened if s.gain > 0), key=lambda s: -s.gain)[: cfg.finalists]
+    """The candidates to refit: the best ``cfg.finalists`` by screen gain of those that add an effect (the first
+    ``cfg.min_finalists`` of them where their gain is positive, the others where it is at least ``cfg.min_gain``;
+    ``screened`` in any order), every structural one (``Candidate.replaces``), every candidate the catalogue names
+    as confusable with one of those (``Candidate.confused``) from ``cfg.min_gain`` up, then any other whose
+    driver's signature share is at least ``cfg.signature_min`` and within ``cfg.signature_tie`` of the best share
+    among the screened candidates (and whose screen gain is not negative: a change that the screen finds worse than
+    the base is not what the residual's shape asks for)."""
+    ranked = sorted((s for s in screened if s.gain > 0 and s.candidate.replaces is None),
+                    key=lambda s: -s.gain)[: cfg.finalists]  # fmt: skip
     out = [s for i, s in enumerate(ranked) if i < cfg.min_finalists or s.gain >= cfg.min_gain]
     # A structural candidate is refitted whenever it applies: a linear step off the base says nothing of a change in
     # the contact law. On the video-level sticky landing (seed 1) sticky screened at -5.60 (-2.0 projected off its
-    # own sensitivities) yet calibrated from its own scan to 0.0285 cm², against the base's 0.378.
+    # own sensitivities) yet calibrated from its own scan to 0.0285 cm², against the base's 0.378. It takes none of
+    # the places by gain, which it would be refitted without.
     out += [s for s in screened if s.candidate.replaces is not None and all(s is not o for o in out)]
+    # A confusable pair is told apart by its refits and the gate, never by the linear screen: on the video-level
+    # friction landing (seed 2) the frictionless base missed the slide, and every candidate that slows it screened
+    # alike (sticky ground 0.932, a force 0.931, linear drag 0.881, quadratic drag 0.873, friction 0.857: the
+    # secant from μ = 0 to 0.3 across a slide that stops), so friction, fifth, was not refitted.
+    out += [s for s in screened if s.gain >= cfg.min_gain and all(s is not o for o in out)
+            and any(s.candidate.confused(o.candidate) for o in out)]  # fmt: skip
     shares = {s.candidate.key: signatures.get(s.candidate.driver) for s in screened}
     known = [v for v in shares.values() if v is not None]
     if known:

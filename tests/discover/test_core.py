@@ -1093,7 +1093,7 @@ def test_the_best_two_by_screen_gain_are_refitted_whenever_it_is_positive():
     # a third from min_gain up, never more than ``finalists``
     assert keys([s("plasticity", 0.4), s("damping", 0.3), s("force", 0.02), s("linear_drag", 0.019)]) == [
         "plasticity", "damping", "force"]  # fmt: skip
-    assert keys([s("plasticity", 0.4), s("damping", 0.3), s("force", 0.25), s("linear_drag", 0.2)]) == [
+    assert keys([s("plasticity", 0.4), s("damping", 0.3), s("force", 0.25), s("quadratic_drag", 0.2)]) == [
         "plasticity", "damping", "force"]  # fmt: skip
     # a gain of zero or below never brings a candidate by its rank
     assert keys([s("force", 0.008), s("damping", 0.0), s("plasticity", -0.1)]) == ["force"]
@@ -1102,6 +1102,35 @@ def test_the_best_two_by_screen_gain_are_refitted_whenever_it_is_positive():
     assert keys([s("force", 0.007), s("damping", 0.016), s("plasticity", 0.392)]) == ["plasticity", "damping"]
     # the former rule (every finalist from min_gain up) is one setting away
     assert keys([s("plasticity", 0.392), s("damping", 0.016)], DiscoverConfig(min_finalists=0)) == ["plasticity"]
+
+
+def test_a_confusable_partner_of_a_finalist_is_refitted_and_a_structural_one_takes_no_place_by_gain():
+    """The video-level friction landing, seed 2: the frictionless base missed the slide and every candidate that
+    slows it screened alike, friction fifth. Sticky ground, refitted whatever its screen says, takes none of the
+    three places by gain; friction, which the catalogue names as confusable with sticky ground and linear drag, is
+    refitted with them. A partner below ``min_gain`` is not."""
+    from causalgs.discover.candidates import BY_KEY
+    from causalgs.discover.screen import Screened
+    from causalgs.discover.search import DiscoverConfig, pick_finalists
+
+    def s(key, gain):
+        return Screened(BY_KEY[key], gain, {}, None, None)
+
+    assert BY_KEY["friction"].confused(BY_KEY["sticky"]) and BY_KEY["sticky"].confused(BY_KEY["friction"])
+    assert BY_KEY["damping"].confused(BY_KEY["linear_drag"]) and not BY_KEY["force"].confused(BY_KEY["friction"])
+    flat = {"v": 0.003, "vv": 0.004, "contact": 0.09, "const": 0.016, "internal": 0.0}  # as measured there
+    screened = [s("sticky", 0.932), s("force", 0.931), s("linear_drag", 0.881), s("quadratic_drag", 0.873),
+                s("friction", 0.857), s("plasticity", 0.0044), s("damping", -0.0)]  # fmt: skip
+
+    def keys(screened, c=None):
+        return [f.candidate.key for f in pick_finalists(screened, flat, c or DiscoverConfig())]
+
+    assert keys(screened) == ["force", "linear_drag", "quadratic_drag", "sticky", "friction"]
+    assert keys(screened, DiscoverConfig(finalists=1)) == ["force", "sticky", "friction"]
+    # partners only from min_gain up: damping (linear drag's partner) at 0.01 is not refitted
+    assert keys([s("linear_drag", 0.5), s("damping", 0.01)], DiscoverConfig(min_finalists=1)) == ["linear_drag"]
+    assert keys([s("linear_drag", 0.5), s("damping", 0.03)], DiscoverConfig(min_finalists=1, finalists=1)) == [
+        "linear_drag", "damping"]  # fmt: skip
 
 
 def test_a_structural_refit_starts_first_from_a_scan_of_its_own():
