@@ -111,8 +111,8 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     trajectories of material points and how many leading frames may be fitted; the rest are held out and only
     scored). The model (--effects) is calibrated on the fit window from several stiffnesses (and, past a
     contact, from a coarse scan), its throw started from the whole free flight; the disagreement is mapped by
-    frame, body and contact state; every candidate of the
-    catalogue is screened with one sensitivity rollout; the best are refitted jointly with the base through the
+    frame, body and contact state; every candidate of the catalogue is screened with one sensitivity rollout; the
+    best (with those the catalogue names as confusable with them) are refitted jointly with the base through the
     differentiable MPM, and sticky ground (which replaces the sliding contact) wherever it applies, from a scan of
     its own (through a run's rigid lens, --weigh weighs residuals down where the bodies deform); a gate
     accepts one only if the held-out error drops, BIC (with an effective sample size)
