@@ -1093,6 +1093,8 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
             entry["refits"].append(res)
             if v.passed:
                 passed.append((c, st, unc, v))
+        log(f"round {round_ + 1}: " + (f"passed the gate: {', '.join(p[0].key for p in passed)}" if passed
+                                       else "nothing passed the gate"))  # fmt: skip
         if not passed:
             break
         if len(passed) > 1:  # their held-out comparison carries the rest shape's error too (paired draws)

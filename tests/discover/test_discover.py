@@ -57,9 +57,12 @@ def test_a_hidden_drag_is_found_named_and_repaired(ti32_runtime, tmp_path):
     from causalgs.discover.run import run_discovery
 
     obs = _throw(C_TRUE)
+    lines = []
     rep = run_discovery("throw.npz", tmp_path, spec="gravity;walls", learn=(), candidates=CANDIDATES, config=CFG,
-                        obs=obs)  # fmt: skip
+                        obs=obs, log=lines.append)  # fmt: skip
     assert rep["verdict"] == "discovered", rep["rounds"]
+    gate = [ln for ln in lines if ln.startswith("round 1: passed the gate: ")]  # said as it happens
+    assert len(gate) == 1 and "linear_drag" in gate[0], lines
     found = rep["discovered"][0]
     assert found["effect"] == "linear_drag"
     c = found["params"]["linear_drag.c"]
@@ -84,9 +87,11 @@ def test_a_hidden_drag_is_found_named_and_repaired(ti32_runtime, tmp_path):
 def test_nothing_is_found_when_nothing_is_missing(ti32_runtime, tmp_path):
     from causalgs.discover.run import run_discovery
 
+    lines = []
     rep = run_discovery("throw.npz", tmp_path, spec="gravity;walls", learn=(), candidates=CANDIDATES, config=CFG,
-                        obs=_throw(0.0))  # fmt: skip
+                        obs=_throw(0.0), log=lines.append)  # fmt: skip
     assert rep["verdict"] == "no missing effect", rep["rounds"]
+    assert "round 1: nothing passed the gate" in lines, lines
     assert rep["discovered"] == [] and rep["ambiguous"] == []
     assert rep["error_before"]["fit_rms_m"] < 2 * math.sqrt(2) * NOISE
     assert "No missing effect" in (tmp_path / "report.md").read_text()
