@@ -41,12 +41,16 @@ class Candidate:
         """The probe values the screen tries: :attr:`probe` first, then :attr:`probes`."""
         return (self.probe, *self.probes)
 
-    def applies(self, base: Effects, learn) -> bool:
+    def applies(self, base: Effects, learn, changed=()) -> bool:
+        """Whether this candidate is a discovery for a model with effects ``base`` learning ``learn``, after
+        discoveries that added or changed the registry effects ``changed``. A structural candidate never replaces
+        such an effect: sticky ground after friction would drop the friction just found, and the round that found
+        it weighed sticky ground already (a structural candidate is refitted wherever it applies)."""
         names = base.names()
         if self.key == "friction":
             return "ground" in names and float(base.get("ground", "mu")[0]) == 0.0 and "ground.mu" not in learn
         if self.replaces is not None:
-            return self.replaces in names and self.effect not in names
+            return self.replaces in names and self.effect not in names and self.replaces not in changed
         return self.effect not in names
 
     def learn(self, base_learn) -> list[str]:

@@ -29,7 +29,7 @@ import torch
 
 from causalgs.discover import residuals as R
 from causalgs.discover.calibrate import UNIT, Fit, fit_frames, live, positions, scale
-from causalgs.discover.candidates import Candidate, select
+from causalgs.discover.candidates import BY_KEY, Candidate, select
 from causalgs.discover.gate import GateConfig, block_bootstrap, effective_n, judge
 from causalgs.discover.journal import Journal
 from causalgs.discover.model import PhysicsModel
@@ -1014,7 +1014,8 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
     current = base
     best_train = base.train
     for round_ in range(cfg.max_effects):
-        pool = [c for c in pool if c.applies(current.model.effects, current.model.learn)]
+        changed = {BY_KEY[d["effect"]].effect for d in report["discovered"]}
+        pool = [c for c in pool if c.applies(current.model.effects, current.model.learn, changed)]
         if not pool:
             break
         if report["discovered"]:

@@ -770,12 +770,18 @@ def test_discovery_weighs_by_the_tracks_disagreement_where_the_observation_has_i
     assert keys[0]["weigh_by"] == "tracks" and "weigh_by" not in keys[1] and "weigh_by" not in keys[2]
 
 
-def test_candidates_apply_only_where_the_base_lacks_them():
+def test_candidates_apply_only_where_the_base_lacks_them(ti64):
     base = Effects.from_spec("gravity;ground:mu=0.4;walls")
     keys = {c.key for c in select() if c.applies(base, ())}
     assert "linear_drag" in keys and "friction" not in keys and "sticky" in keys
     slip = Effects.from_spec("gravity;ground:mu=0;walls")
     assert BY_KEY["friction"].applies(slip, ()) and not BY_KEY["friction"].applies(slip, ("ground.mu",))
+    # once friction is found, sticky ground would drop it (the round that found friction weighed sticky already);
+    # an effect that adds a term replaces nothing and still applies
+    found = Effects.from_spec("gravity;ground:mu=0.37;walls")
+    assert BY_KEY["sticky"].applies(found, ("ground.mu",))
+    assert not BY_KEY["sticky"].applies(found, ("ground.mu",), changed={"ground"})
+    assert BY_KEY["linear_drag"].applies(found, ("ground.mu",), changed={"ground"})
     spec = BY_KEY["linear_drag"].spec(base)
     assert Effects.from_spec(spec).names() == ["gravity", "linear_drag", "ground", "walls"]
     sticky = Effects.from_spec(BY_KEY["sticky"].spec(base))
