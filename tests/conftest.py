@@ -3,6 +3,9 @@ are noise in float32), and tests that need float32 ask for it explicitly."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -19,6 +22,32 @@ def ti32():
     from causalgs import _ti
 
     return _ti.init("cpu", "float32")
+
+
+_gpu_arch: list[str] = []
+
+
+def gpu_arch() -> str:
+    """The backend ``_ti.init("gpu")`` takes on this machine ("cuda", "vulkan" or the CPU's), asked once, in a
+    separate process: asked here, a machine without a GPU would switch this process's Taichi to the CPU fallback
+    and every test after it would start a new runtime."""
+    if not _gpu_arch:
+        code = "from causalgs import _ti; print(_ti.init('gpu', 'float32', quiet=True).arch)"
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+        _gpu_arch.append(out.stdout.strip().splitlines()[-1] if out.returncode == 0 and out.stdout.strip() else "")
+    return _gpu_arch[0]
+
+
+@pytest.fixture
+def cuda64():
+    """Taichi on CUDA in float64 (Vulkan has no float64); the test is skipped on a machine without CUDA."""
+    if gpu_arch() != "cuda":
+        pytest.skip("needs a CUDA device")
+    from causalgs import _ti
+
+    rt = _ti.init("gpu", "float64")
+    assert rt.arch == "cuda", rt.arch
+    return rt
 
 
 def _random_gaussians(n: int = 50, seed: int = 0) -> dict[str, np.ndarray]:

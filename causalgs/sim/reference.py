@@ -40,12 +40,14 @@ def kirchhoff(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, model: str) 
 
 
 def effects_list(spec: str) -> list[tuple[str, dict[str, tuple[float, ...]]]]:
-    """Parse a spec and fill in defaults, in application order (forces, then boundary conditions)."""
+    """Parse a spec and fill in defaults, in the kernels' application order: by stage (forces, then boundary
+    conditions), and by name within a stage, whatever the order of the spec (forces such as a drag and an attractor
+    do not commute within a substep)."""
     out = []
     for name, values in parse_spec(spec):
         d = REGISTRY[name]
         out.append((name, {p.name: tuple(values.get(p.name, p.default)) for p in d.params}))
-    return sorted(out, key=lambda e: REGISTRY[e[0]].order)
+    return sorted(out, key=lambda e: (REGISTRY[e[0]].order, e[0]))
 
 
 def _vec(p, name, dtype):
