@@ -127,7 +127,7 @@ def test_cuda_gradients_match_finite_differences(cuda64, mk):
 
 def test_cuda_backward_is_repeatable(cuda64, mk):
     """Two backward passes of one rollout agree to round-off, though the GPU's atomic adds sum in varying order."""
-    sim, inp, loss = _throw(mk)
+    _, inp, loss = _throw(mk)
     grads = []
     for _ in range(2):
         leaves = {k: v.clone().requires_grad_(True) for k, v in inp.items()}
