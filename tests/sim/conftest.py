@@ -4,6 +4,7 @@ is a new set of fields and so a new compile of every MPM kernel), and small part
 from __future__ import annotations
 
 import itertools
+import math
 from types import SimpleNamespace
 
 import pytest
@@ -49,7 +50,102 @@ def fill_block(store, x: torch.Tensor, E: float = 1.0e4, nu: float = 0.3, densit
     store.from_torch("density", torch.full((n,), density))
 
 
+def random_materials(n: int, seed: int) -> dict[str, torch.Tensor]:
+    """Per-particle volumes, densities, Young's moduli and Poisson ratios drawn around a soft solid's (float64)."""
+    g = torch.Generator().manual_seed(seed)
+    d = torch.float64
+    return {
+        "vol": torch.rand(n, generator=g, dtype=d) * 1e-4 + 1e-4,
+        "density": torch.rand(n, generator=g, dtype=d) * 1e3 + 5e2,
+        "E": torch.rand(n, generator=g, dtype=d) * 9e3 + 1e3,
+        "nu": torch.rand(n, generator=g, dtype=d) * 0.2 + 0.2,
+    }
+
+
+# Every registered effect, each with a parameter that matters for the throw below.
+ALL_EFFECTS = (
+    "gravity:g=0.5,-0.3,-9.8;force:b=0.4,0.8,0.3;linear_drag:c=0.6;quadratic_drag:k=0.8;"
+    "ground:n=0.1,0.05,1:d=0.12:mu=0.4;ground_sticky:n=-1,0,0.02:d=-0.575;damping:eta=40;"
+    "plasticity:yield_stress=300;attractor:k=2.0:c=0.5,0.45,0.3;floor:n=-0.05,0.1,1:d=0.165:mu=0.3;walls"
+)
+THROW_TIMES = (0.012, 0.03, 0.042)  # with dt = 3 ms: 14 substeps, 7 segments of 2 (outputs inside and at segment ends)
+THROW_DT = 3e-3
+
+
+def throw(segment: int):
+    """An elastoplastic block thrown with a spin against the grounds, floor and sticky plane of ``ALL_EFFECTS``
+    (fixed substep, so finite differences see the same schedule): the simulator, the inputs of ``simulate`` with
+    random per-particle materials, and random loss weights on positions, velocities and deformation gradients."""
+    from causalgs.sim import SimConfig, Simulator
+
+    d = torch.float64
+    x0 = block((0.52, 0.5, 0.175), count=4)
+    n = len(x0)
+    store = shared_store(n)
+    fill_block(store, x0, E=2e4, nu=0.3, density=800.0)
+    sim = Simulator(store, SimConfig(res=16, effects=ALL_EFFECTS, segment=segment, dt=THROW_DT))
+    g = torch.Generator().manual_seed(5)
+    r = x0 - x0.mean(0)
+    v0 = torch.tensor([0.6, 0.2, -0.9], dtype=d) + torch.linalg.cross(torch.tensor([2.0, -1.0, 3.0], dtype=d)
+                                                                     .expand(n, 3), r)  # fmt: skip
+    v0 = v0 + 0.05 * torch.randn(n, 3, generator=g, dtype=d)
+    E = 2e4 * (1 + 0.2 * torch.rand(n, generator=g, dtype=d))
+    nu = 0.25 + 0.1 * torch.rand(n, generator=g, dtype=d)
+    rho = 800.0 * (1 + 0.2 * torch.rand(n, generator=g, dtype=d))
+    params = torch.as_tensor(sim.effects.flat(), dtype=d)
+    w = {
+        "x": torch.randn(len(THROW_TIMES), n, 3, generator=g, dtype=d),
+        "v": torch.randn(len(THROW_TIMES), n, 3, generator=g, dtype=d),
+        "F": torch.randn(len(THROW_TIMES), n, 3, 3, generator=g, dtype=d),
+    }
+    return sim, {"x0": x0, "v0": v0, "E": E, "nu": nu, "density": rho, "params": params}, w
+
+
+def throw_loss(sim, inp, w):
+    """A weighted sum of the throw's positions, velocities and deformation gradients at ``THROW_TIMES``."""
+    from causalgs.sim.autograd import simulate
+
+    x, v, F = simulate(sim, inp["x0"], inp["v0"], inp["E"], inp["nu"], inp["density"], THROW_TIMES, inp["params"])
+    return (w["x"] * x).sum() + 0.1 * (w["v"] * v).sum() + (w["F"] * F).sum()
+
+
+def check_gradients(sim, inp, w, seed: int = 11) -> None:
+    """The throw's autodiff gradients against float64 central differences: x0 and v0 along random directions, the
+    materials along random relative directions, every effect parameter on its own."""
+    d = torch.float64
+    leaves = {k: v.clone().requires_grad_(True) for k, v in inp.items()}
+    throw_loss(sim, leaves, w).backward()
+    g = torch.Generator().manual_seed(seed)
+
+    def check(name, direction, h, label):
+        ad = float((leaves[name].grad * direction).sum())
+        plus = {**inp, name: inp[name] + h * direction}
+        minus = {**inp, name: inp[name] - h * direction}
+        with torch.no_grad():
+            num = (float(throw_loss(sim, plus, w)) - float(throw_loss(sim, minus, w))) / (2 * h)
+        assert math.isfinite(ad) and abs(num) > 1e-8, f"{label}: derivative {num:.3g} too small to test"
+        rel = abs(ad - num) / abs(num)
+        assert rel < 1e-4, f"{label}: autodiff {ad:.10g} vs finite differences {num:.10g} (relative {rel:.2g})"
+
+    check("x0", torch.randn(inp["x0"].shape, generator=g, dtype=d), 1e-6, "x0")
+    check("v0", torch.randn(inp["v0"].shape, generator=g, dtype=d), 1e-6, "v0")
+    for name in ("E", "nu", "density"):
+        direction = inp[name] * torch.randn(inp[name].shape, generator=g, dtype=d) * (0.1 if name == "nu" else 1)
+        check(name, direction, 1e-6, name)
+    names = sim.effects.param_names()
+    assert len(names) == len(inp["params"])
+    for i, label in enumerate(names):
+        e = torch.zeros(len(names), dtype=d)
+        e[i] = 1.0
+        check("params", e, 1e-6 * max(1.0, abs(float(inp["params"][i]))), label)
+
+
 @pytest.fixture
 def mk():
-    """Helpers: ``mk.store(n)``, ``mk.block(center, count)``, ``mk.fill(store, x, E=...)``, ``mk.DX``."""
-    return SimpleNamespace(store=shared_store, block=block, fill=fill_block, DX=DX)
+    """Helpers: ``mk.store(n)``, ``mk.block(center, count)``, ``mk.fill(store, x, E=...)``, ``mk.DX``,
+    ``mk.materials(n, seed)``; the throw with every effect: ``mk.throw(segment)``, ``mk.throw_loss``,
+    ``mk.check_gradients``, ``mk.ALL_EFFECTS``, ``mk.THROW_TIMES``."""
+    return SimpleNamespace(
+        store=shared_store, block=block, fill=fill_block, DX=DX, materials=random_materials, throw=throw,
+        throw_loss=throw_loss, check_gradients=check_gradients, ALL_EFFECTS=ALL_EFFECTS, THROW_TIMES=THROW_TIMES,
+    )  # fmt: skip

@@ -30,13 +30,7 @@ def test_substeps_match_reference(ti64, mk, model, substeps):
     n = 200
     store = mk.store(n)
     state = _random_state(n, seed=substeps)
-    g = torch.Generator().manual_seed(7)
-    mat = {
-        "vol": torch.rand(n, generator=g, dtype=torch.float64) * 1e-4 + 1e-4,
-        "density": torch.rand(n, generator=g, dtype=torch.float64) * 1e3 + 5e2,
-        "E": torch.rand(n, generator=g, dtype=torch.float64) * 9e3 + 1e3,
-        "nu": torch.rand(n, generator=g, dtype=torch.float64) * 0.2 + 0.2,
-    }
+    mat = mk.materials(n, seed=7)
     for k, t in mat.items():
         store.from_torch(k, t)
     cfg = SimConfig(res=16, material=model, effects=SPEC, segment=8)
@@ -94,34 +88,22 @@ def test_particle_floor_matches_reference(ti64, mk):
     assert int((below & near).sum()) > 10 and int(below.sum()) < n - 20  # it acts on some particles, not all
 
 
-ALL = (
-    "walls;floor:n=-0.05,0.1,1:d=0.165:mu=0.3;attractor:k=2.0:c=0.5,0.45,0.3;plasticity:yield_stress=300;"
-    "damping:eta=40;ground_sticky:n=-1,0,0.02:d=-0.575;ground:n=0.1,0.05,1:d=0.12:mu=0.4;quadratic_drag:k=0.8;"
-    "linear_drag:c=0.6;force:b=0.4,0.8,0.3;gravity:g=0.5,-0.3,-9.8"
-)
-
-
 def test_every_effect_at_once_matches_reference_in_any_spec_order(ti64, mk):
     """All registered effects together, the spec written in two orders: the kernels apply the terms of a stage by
     name whatever the spec's order, and so must the reference (a drag and an attractor do not commute within a
     substep: in the spec's order the reference differed by 3e-5 m/s after three substeps)."""
     from causalgs.sim import REGISTRY
 
-    assert {part.split(":")[0] for part in ALL.split(";")} == set(REGISTRY)
+    terms = mk.ALL_EFFECTS.split(";")
+    assert {part.split(":")[0] for part in terms} == set(REGISTRY)
     n = 400
     store = mk.store(n)
     state = _random_state(n, seed=2)
-    g = torch.Generator().manual_seed(8)
-    mat = {
-        "vol": torch.rand(n, generator=g, dtype=torch.float64) * 1e-4 + 1e-4,
-        "density": torch.rand(n, generator=g, dtype=torch.float64) * 1e3 + 5e2,
-        "E": torch.rand(n, generator=g, dtype=torch.float64) * 9e3 + 1e3,
-        "nu": torch.rand(n, generator=g, dtype=torch.float64) * 0.2 + 0.2,
-    }
+    mat = mk.materials(n, seed=8)
     for k, t in mat.items():
         store.from_torch(k, t)
     results = []
-    for spec in (ALL, ";".join(reversed(ALL.split(";")))):
+    for spec in (mk.ALL_EFFECTS, ";".join(reversed(terms))):
         cfg = SimConfig(res=16, effects=spec, segment=8)
         sim = Simulator(store, cfg)
         sim.set_state(**state)
