@@ -62,6 +62,44 @@ def random_materials(n: int, seed: int) -> dict[str, torch.Tensor]:
     }
 
 
+def random_state(n: int, seed: int) -> dict[str, torch.Tensor]:
+    """A random MPM state (float64): positions spread over the box, so some particles sit in the wall band and the
+    walls term acts; velocities, affine velocities and deformation gradients near the identity."""
+    g = torch.Generator().manual_seed(seed)
+    d = torch.float64
+    return {
+        "x": torch.rand(n, 3, generator=g, dtype=d) * 0.8 + 0.1,
+        "v": torch.randn(n, 3, generator=g, dtype=d),
+        "C": torch.randn(n, 3, 3, generator=g, dtype=d) * 0.5,
+        "F": torch.eye(3, dtype=d) + 0.1 * torch.randn(n, 3, 3, generator=g, dtype=d),
+    }
+
+
+def run_against_reference(store, state, mat, cfg, steps: int, dt: float, label: str = "") -> dict:
+    """Write ``mat`` into ``store``, take ``steps`` substeps of ``dt`` from ``state`` with the Taichi simulator of
+    ``cfg`` and with the plain-torch reference, assert they agree to 1e-10 (relative to each quantity's scale), and
+    return the simulator's state."""
+    from causalgs.sim import Simulator
+    from causalgs.sim.reference import effects_list, substep
+
+    for k, t in mat.items():
+        store.from_torch(k, t)
+    sim = Simulator(store, cfg)
+    sim.set_state(**state)
+    sim.step(steps, dt)
+    got = sim.state()
+    ref, geo = dict(state), cfg.geometry
+    for _ in range(steps):
+        ref = substep(ref, mat, dt, geo.lo, geo.dx, geo.shape, cfg.material, effects_list(cfg.effects))
+    for k in ("x", "v", "C", "F"):
+        assert got[k].device.type == "cpu" and got[k].dtype == torch.float64, f"{label}{k}: {got[k].dtype}"
+        scale = max(1.0, float(ref[k].abs().max()))
+        err = float((got[k] - ref[k]).abs().max())
+        assert err <= 1e-10 * scale, f"{label}{k} differs by {err:.3g} (scale {scale:.3g})"
+    assert abs(sim.time - steps * dt) < 1e-15
+    return got
+
+
 # Every registered effect, each with a parameter that matters for the throw below.
 ALL_EFFECTS = (
     "gravity:g=0.5,-0.3,-9.8;force:b=0.4,0.8,0.3;linear_drag:c=0.6;quadratic_drag:k=0.8;"
@@ -143,9 +181,11 @@ def check_gradients(sim, inp, w, seed: int = 11) -> None:
 @pytest.fixture
 def mk():
     """Helpers: ``mk.store(n)``, ``mk.block(center, count)``, ``mk.fill(store, x, E=...)``, ``mk.DX``,
-    ``mk.materials(n, seed)``; the throw with every effect: ``mk.throw(segment)``, ``mk.throw_loss``,
+    ``mk.materials(n, seed)``, ``mk.state(n, seed)``, ``mk.against_reference(store, state, mat, cfg, steps, dt)``;
+    the throw with every effect: ``mk.throw(segment)``, ``mk.throw_loss``,
     ``mk.check_gradients``, ``mk.ALL_EFFECTS``, ``mk.THROW_TIMES``."""
     return SimpleNamespace(
-        store=shared_store, block=block, fill=fill_block, DX=DX, materials=random_materials, throw=throw,
+        store=shared_store, block=block, fill=fill_block, DX=DX, materials=random_materials, state=random_state,
+        against_reference=run_against_reference, throw=throw,
         throw_loss=throw_loss, check_gradients=check_gradients, ALL_EFFECTS=ALL_EFFECTS, THROW_TIMES=THROW_TIMES,
     )  # fmt: skip

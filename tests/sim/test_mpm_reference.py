@@ -6,61 +6,28 @@ import pytest
 import torch
 
 from causalgs.sim import MODELS, SimConfig, Simulator
-from causalgs.sim.reference import effects_list, kirchhoff, substep
+from causalgs.sim.reference import kirchhoff
 from causalgs.store import ParticleStore
 
 SPEC = "gravity:g=0.3,-1,-9.8;linear_drag:c=0.7;walls"
-
-
-def _random_state(n: int, seed: int) -> dict[str, torch.Tensor]:
-    g = torch.Generator().manual_seed(seed)
-    d = torch.float64
-    return {
-        # Spread over the box, so some particles sit in the wall band and the walls term acts.
-        "x": torch.rand(n, 3, generator=g, dtype=d) * 0.8 + 0.1,
-        "v": torch.randn(n, 3, generator=g, dtype=d),
-        "C": torch.randn(n, 3, 3, generator=g, dtype=d) * 0.5,
-        "F": torch.eye(3, dtype=d) + 0.1 * torch.randn(n, 3, 3, generator=g, dtype=d),
-    }
 
 
 @pytest.mark.parametrize("model", list(MODELS))
 @pytest.mark.parametrize("substeps", [1, 3])
 def test_substeps_match_reference(ti64, mk, model, substeps):
     n = 200
-    store = mk.store(n)
-    state = _random_state(n, seed=substeps)
-    mat = mk.materials(n, seed=7)
-    for k, t in mat.items():
-        store.from_torch(k, t)
     cfg = SimConfig(res=16, material=model, effects=SPEC, segment=8)
-    sim = Simulator(store, cfg)
-    sim.set_state(**state)
-    dt = 1e-3
-    sim.step(substeps, dt)
-    got = sim.state()
-
-    ref = dict(state)
-    geo = cfg.geometry
-    for _ in range(substeps):
-        ref = substep(ref, mat, dt, geo.lo, geo.dx, geo.shape, model, effects_list(SPEC))
-    for k in ("x", "v", "C", "F"):
-        scale = max(1.0, float(ref[k].abs().max()))
-        err = float((got[k] - ref[k]).abs().max())
-        assert err <= 1e-10 * scale, f"{model}, {substeps} substep(s): {k} differs by {err:.3g} (scale {scale:.3g})"
-    assert abs(sim.time - substeps * dt) < 1e-15
+    mk.against_reference(mk.store(n), mk.state(n, seed=substeps), mk.materials(n, seed=7), cfg, substeps, 1e-3,
+                         f"{model}, {substeps} substep(s): ")  # fmt: skip
 
 
 def test_particle_floor_matches_reference(ti64, mk):
     """The particle-stage floor (a tilted Coulomb plane met by the particles) against the reference, with particles
     above it, crossing it within the substep and below it."""
     n = 200
-    store = mk.store(n)
-    state = _random_state(n, seed=9)
+    state = mk.state(n, seed=9)
     mat = {"vol": torch.full((n,), 1e-4, dtype=torch.float64), "density": torch.full((n,), 1e3, dtype=torch.float64),
            "E": torch.full((n,), 5e3, dtype=torch.float64), "nu": torch.full((n,), 0.3, dtype=torch.float64)}
-    for k, t in mat.items():
-        store.from_torch(k, t)
     spec = "gravity;floor:n=0.1,-0.2,1:d=0.35:mu=0.4;walls"
     normal = torch.tensor([0.1, -0.2, 1.0], dtype=torch.float64)
     normal = normal / normal.norm()
@@ -71,19 +38,7 @@ def test_particle_floor_matches_reference(ti64, mk):
     gap = (torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * 0.01
     state["x"] = torch.where(near[:, None], state["x"] - ((state["x"] @ normal) - 0.35 - gap)[:, None] * normal,
                              state["x"])  # fmt: skip
-    cfg = SimConfig(res=16, effects=spec, segment=8)
-    sim = Simulator(store, cfg)
-    sim.set_state(**state)
-    dt = 2e-3
-    sim.step(3, dt)
-    got = sim.state()
-    ref, geo = dict(state), cfg.geometry
-    for _ in range(3):
-        ref = substep(ref, mat, dt, geo.lo, geo.dx, geo.shape, "neo_hookean", effects_list(spec))
-    for k in ("x", "v", "C", "F"):
-        scale = max(1.0, float(ref[k].abs().max()))
-        err = float((got[k] - ref[k]).abs().max())
-        assert err <= 1e-10 * scale, f"{k} differs by {err:.3g} (scale {scale:.3g})"
+    mk.against_reference(mk.store(n), state, mat, SimConfig(res=16, effects=spec, segment=8), 3, 2e-3)
     below = (state["x"] @ normal) < 0.35
     assert int((below & near).sum()) > 10 and int(below.sum()) < n - 20  # it acts on some particles, not all
 
@@ -96,27 +51,11 @@ def test_every_effect_at_once_matches_reference_in_any_spec_order(ti64, mk):
 
     terms = mk.ALL_EFFECTS.split(";")
     assert {part.split(":")[0] for part in terms} == set(REGISTRY)
-    n = 400
-    store = mk.store(n)
-    state = _random_state(n, seed=2)
-    mat = mk.materials(n, seed=8)
-    for k, t in mat.items():
-        store.from_torch(k, t)
+    store, state, mat = mk.store(400), mk.state(400, seed=2), mk.materials(400, seed=8)
     results = []
     for spec in (mk.ALL_EFFECTS, ";".join(reversed(terms))):
         cfg = SimConfig(res=16, effects=spec, segment=8)
-        sim = Simulator(store, cfg)
-        sim.set_state(**state)
-        sim.step(3, 1e-3)
-        got = sim.state()
-        ref, geo = dict(state), cfg.geometry
-        for _ in range(3):
-            ref = substep(ref, mat, 1e-3, geo.lo, geo.dx, geo.shape, "neo_hookean", effects_list(spec))
-        for k in ("x", "v", "C", "F"):
-            scale = max(1.0, float(ref[k].abs().max()))
-            err = float((got[k] - ref[k]).abs().max())
-            assert err <= 1e-10 * scale, f"{k} differs by {err:.3g} (scale {scale:.3g})"
-        results.append(got)
+        results.append(mk.against_reference(store, state, mat, cfg, 3, 1e-3, f"spec {spec!r}: "))
     for k in ("x", "v", "C", "F"):
         assert torch.equal(results[0][k], results[1][k]), f"{k} depends on the spec's order"
 
@@ -124,7 +63,7 @@ def test_every_effect_at_once_matches_reference_in_any_spec_order(ti64, mk):
 def test_segment_boundary_is_seamless(ti64, mk):
     """Five substeps in segments of 2 (two checkpoint boundaries) equal the same substeps in one segment of 8."""
     n = 100
-    state = _random_state(n, seed=4)
+    state = mk.state(n, seed=4)
     # The segment length is a field shape, so the second run needs a store of its own.
     stores = [mk.store(n), ParticleStore(n, sh_degree=0)]
     out = []

@@ -6,44 +6,18 @@ scatter runs as concurrent atomic adds in an order that changes from run to run.
 from __future__ import annotations
 
 import pytest
-import torch
 
-from causalgs.sim import MODELS, SimConfig, Simulator
-from causalgs.sim.reference import effects_list, substep
+from causalgs.sim import MODELS, SimConfig
 
 pytestmark = [pytest.mark.gpu]
-
-D = torch.float64
 
 
 @pytest.mark.parametrize("model", list(MODELS))
 def test_cuda_substeps_match_reference(cuda64, mk, model):
     """Particles spread over the box (in the wall band, below the floor and grounds, in flight), random materials."""
-    n, steps, dt = 400, 3, 1e-3
-    g = torch.Generator().manual_seed(2)
-    state = {
-        "x": torch.rand(n, 3, generator=g, dtype=D) * 0.8 + 0.1,
-        "v": torch.randn(n, 3, generator=g, dtype=D),
-        "C": torch.randn(n, 3, 3, generator=g, dtype=D) * 0.5,
-        "F": torch.eye(3, dtype=D) + 0.1 * torch.randn(n, 3, 3, generator=g, dtype=D),
-    }
-    mat = mk.materials(n, seed=3)
-    store = mk.store(n)
-    for k, t in mat.items():
-        store.from_torch(k, t)
+    n = 400
     cfg = SimConfig(res=16, material=model, effects=mk.ALL_EFFECTS, segment=8)
-    sim = Simulator(store, cfg)
-    sim.set_state(**state)
-    sim.step(steps, dt)
-    got = sim.state()
-    ref, geo = dict(state), cfg.geometry
-    for _ in range(steps):
-        ref = substep(ref, mat, dt, geo.lo, geo.dx, geo.shape, model, effects_list(mk.ALL_EFFECTS))
-    for k in ("x", "v", "C", "F"):
-        assert got[k].device.type == "cpu" and got[k].dtype == D
-        scale = max(1.0, float(ref[k].abs().max()))
-        err = float((got[k] - ref[k]).abs().max())
-        assert err <= 1e-10 * scale, f"{model}: {k} differs by {err:.3g} (scale {scale:.3g})"
+    mk.against_reference(mk.store(n), mk.state(n, seed=2), mk.materials(n, seed=3), cfg, 3, 1e-3, f"{model}: ")
 
 
 @pytest.mark.gradcheck
