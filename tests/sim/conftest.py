@@ -88,9 +88,9 @@ def run_against_reference(store, state, mat, cfg, steps: int, dt: float, label: 
     sim.set_state(**state)
     sim.step(steps, dt)
     got = sim.state()
-    ref, geo = dict(state), cfg.geometry
+    ref, geo, effects = dict(state), cfg.geometry, effects_list(cfg.effects)
     for _ in range(steps):
-        ref = substep(ref, mat, dt, geo.lo, geo.dx, geo.shape, cfg.material, effects_list(cfg.effects))
+        ref = substep(ref, mat, dt, geo.lo, geo.dx, geo.shape, cfg.material, effects)
     for k in ("x", "v", "C", "F"):
         assert got[k].device.type == "cpu" and got[k].dtype == torch.float64, f"{label}{k}: {got[k].dtype}"
         scale = max(1.0, float(ref[k].abs().max()))
@@ -182,8 +182,8 @@ def check_gradients(sim, inp, w, seed: int = 11) -> None:
 def mk():
     """Helpers: ``mk.store(n)``, ``mk.block(center, count)``, ``mk.fill(store, x, E=...)``, ``mk.DX``,
     ``mk.materials(n, seed)``, ``mk.state(n, seed)``, ``mk.against_reference(store, state, mat, cfg, steps, dt)``;
-    the throw with every effect: ``mk.throw(segment)``, ``mk.throw_loss``,
-    ``mk.check_gradients``, ``mk.ALL_EFFECTS``, ``mk.THROW_TIMES``."""
+    the throw with every effect: ``mk.throw(segment)``, ``mk.throw_loss``, ``mk.check_gradients``,
+    ``mk.ALL_EFFECTS``, ``mk.THROW_TIMES``."""
     return SimpleNamespace(
         store=shared_store, block=block, fill=fill_block, DX=DX, materials=random_materials, state=random_state,
         against_reference=run_against_reference, throw=throw,
