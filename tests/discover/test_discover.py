@@ -355,6 +355,12 @@ def test_the_report_says_how_each_other_passer_was_told_apart():
     text = markdown(rep)
     assert "interval (95%) from three sources, standard errors: c 0.05 and 0.07 and 0.11" in text
     assert "the tracks' own smooth error, one for the whole window at the noise credited to them" in text
+    assert "the rest shape's error of 1.00 mm and the bodies' extent known to ± 6.35 mm a face carried" in text
+    # a run's rest shape is its particles: no error of its own, only the extent (not "an error of 0.00 mm")
+    d["interval_sources"].update(rest_shape_error_m=0.0)
+    text = markdown(rep)
+    assert "error of 0.00 mm" not in text and "(the residuals' block bootstrap; the bodies' extent known to ± 6.35 mm" in text
+    d["interval_sources"].update(rest_shape_error_m=0.001)
     d["interval_sources"].update(se_rest_shape={"linear_drag.c": None})
     text = markdown(rep)
     assert "from two sources, standard errors: c 0.05 and 0.11 (the residuals' block bootstrap; the tracks' own " \
