@@ -267,7 +267,7 @@ def markdown(report: dict) -> str:
     tr = report.get("tracking")
     L.append("## Where and when the base model departs")
     if dep:
-        L.append(f"- first departure: frame {dep['frame']} (t = {dep['time']:.3f} s), body **{dep['body']}**, "
+        L.append(f"- first departure: frame {dep['frame']} (t = {dep['time']:.3f} s), in **{dep['body']}**, "
                  f"{dep['contact']}, around ({', '.join(f'{c:.3f}' for c in dep['centroid'])}) m"
                  + (" — a frame where the tracked motion has lost the images (below)"
                     if tr and dep["frame"] in tr["poor"] else ""))  # fmt: skip

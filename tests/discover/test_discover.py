@@ -359,13 +359,20 @@ def test_the_report_says_how_each_other_passer_was_told_apart():
     # a run's rest shape is its particles: no error of its own, only the extent (not "an error of 0.00 mm")
     d["interval_sources"].update(rest_shape_error_m=0.0)
     text = markdown(rep)
-    assert "error of 0.00 mm" not in text and "(the residuals' block bootstrap; the bodies' extent known to ± 6.35 mm" in text
+    assert "error of 0.00 mm" not in text
+    assert "(the residuals' block bootstrap; the bodies' extent known to ± 6.35 mm a face carried" in text
     d["interval_sources"].update(rest_shape_error_m=0.001)
     d["interval_sources"].update(se_rest_shape={"linear_drag.c": None})
     text = markdown(rep)
     assert "from two sources, standard errors: c 0.05 and 0.11 (the residuals' block bootstrap; the tracks' own " \
            "smooth error" in text
     d["interval_sources"].update(se_tracking={"linear_drag.c": None})
+    # where and when: frame, time, the body by name, its contact state, where
+    rep["disagreement"]["first_departure"] = {"frame": 6, "time": 0.05, "body": "body 0", "contact": "flight",
+                                              "centroid": [-0.292, -0.049, 0.3]}  # fmt: skip
+    assert "- first departure: frame 6 (t = 0.050 s), in **body 0**, flight, around (-0.292, -0.049, 0.300) m\n" \
+        in markdown(rep)
+    rep["disagreement"]["first_departure"] = None
     assert "interval (95%)" not in markdown(rep)
     # the base's parameters before and after: the effect's own added, a replaced term's shown as gone, no "nan"
     d["base_after"] = {"body 0.E": 2.6e4, "linear_drag.c": 2.5}
