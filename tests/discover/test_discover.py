@@ -79,7 +79,13 @@ def test_a_hidden_drag_is_found_named_and_repaired(ti32_runtime, tmp_path):
     for name in ("report.json", "report.md", "error.png", "residuals.png", "paths.png", "discover.json"):
         assert (tmp_path / name).is_file(), name
     md = (tmp_path / "report.md").read_text()
-    assert "linear drag" in md and "## Errors" in md and "Round 1" in md
+    assert "linear drag" in md and "## Errors (RMS per coordinate" in md and "Round 1" in md
+    # the errors are what the report's heading says: RMS per coordinate over every point and held-out frame
+    z = np.load(tmp_path / "trajectories.npz")
+    for k in ("before", "after"):
+        held = slice(int(z["observed"]), None)
+        per_coordinate = np.sqrt(((z[k][held] - z["x"][held]) ** 2).mean())
+        assert per_coordinate == pytest.approx(rep[f"error_{k}"]["future_rms_m"], rel=1e-6)
     back = json.loads((tmp_path / "report.json").read_text())
     assert back["verdict"] == "discovered" and back["discovered"][0]["effect"] == "linear_drag"
 
