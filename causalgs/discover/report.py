@@ -188,12 +188,12 @@ def markdown(report: dict) -> str:
             if any(v for v in rest.values()) or any(v for v in track.values()):
                 names = ["the residuals' block bootstrap"]
                 if any(v for v in rest.values()):
-                    # a run's particles are its rest shape: its error there is the bodies' extent alone
-                    err = src.get("rest_shape_error_m") or 0.0
-                    shape = ([f"the rest shape's error of {_mm(err)}"] if round(1000 * err, 2) > 0 else []) + (
-                        [f"the bodies' extent known to ± {_mm(src['shape_resolution_m'] / 2)} a face"]
-                        if src.get("shape_resolution_m") else [])  # fmt: skip
-                    names.append(" and ".join(shape or ["the rest shape's error"]) + " carried through the fit")
+                    # a run's particles are its rest shape: its error there (below what _mm shows) is the extent
+                    err, res = src.get("rest_shape_error_m") or 0.0, src.get("shape_resolution_m")
+                    shape = " and ".join(part for part in (
+                        f"the rest shape's error of {_mm(err)}" if err >= 5e-6 else "",
+                        f"the bodies' extent known to ± {_mm(res / 2)} a face" if res else "") if part)  # fmt: skip
+                    names.append((shape or "the rest shape's error") + " carried through the fit")
                 if any(v for v in track.values()):
                     names.append("the tracks' own smooth error, one for the whole window at the noise credited "
                                  "to them, sized frame by frame as the camera halves disagree, carried through the fit")
