@@ -188,10 +188,10 @@ def markdown(report: dict) -> str:
             if any(v for v in rest.values()) or any(v for v in track.values()):
                 names = ["the residuals' block bootstrap"]
                 if any(v for v in rest.values()):
-                    # a run's particles are its rest shape: its error there (below what _mm shows) is the extent
+                    # a run's particles are its rest shape: its error there (shown as 0.00 mm) is the extent
                     err, res = src.get("rest_shape_error_m") or 0.0, src.get("shape_resolution_m")
                     shape = " and ".join(part for part in (
-                        f"the rest shape's error of {_mm(err)}" if err >= 5e-6 else "",
+                        f"the rest shape's error of {_mm(err)}" if _mm(err) != _mm(0.0) else "",
                         f"the bodies' extent known to ± {_mm(res / 2)} a face" if res else "") if part)  # fmt: skip
                     names.append((shape or "the rest shape's error") + " carried through the fit")
                 if any(v for v in track.values()):

@@ -367,6 +367,8 @@ def test_the_report_says_how_each_other_passer_was_told_apart():
     text = markdown(rep)
     assert "error of 0.00 mm" not in text
     assert "(the residuals' block bootstrap; the bodies' extent known to ± 6.35 mm a face carried" in text
+    d["interval_sources"].update(rest_shape_error_m=2e-6)  # nonzero, but shown as 0.00 mm: left out too
+    assert "error of 0.00 mm" not in markdown(rep)
     d["interval_sources"].update(rest_shape_error_m=0.001)
     d["interval_sources"].update(se_rest_shape={"linear_drag.c": None})
     text = markdown(rep)
