@@ -201,9 +201,10 @@ def sim_benchmark(
     segments: int = 2,
 ) -> Iterable[dict]:
     """One record per (grid resolution, particle count): forward and forward+backward ms per substep (medians over
-    ``repeats`` runs of ``segments`` checkpoint segments), and the memory the differentiable state takes for one
-    simulated second with checkpoints (one segment of slots + a checkpoint per segment) and without (a slot per
-    substep), from the field sizes allocated."""
+    ``repeats`` runs of ``segments`` checkpoint segments), the forward with one kernel launch per phase instead of
+    the fused substep (``fused_speedup`` = phased / fused, measured in the same process), and the memory the
+    differentiable state takes for one simulated second with checkpoints (one segment of slots + a checkpoint per
+    segment) and without (a slot per substep), from the field sizes allocated."""
     from causalgs import _ti
     from causalgs.store import ParticleStore
 
@@ -217,9 +218,9 @@ def sim_benchmark(
             dt = sim.stable_dt()
             steps = segment * segments
 
-            def forward(sim=sim, x=x, v=v, dt=dt, steps=steps):
+            def forward(sim=sim, x=x, v=v, dt=dt, steps=steps, phased=False):
                 sim.set_state(x, v)
-                sim.step(steps, dt)
+                sim.step(steps, dt, phased=phased)
 
             def forward_backward(sim=sim, x=x, v=v, dt=dt, steps=steps):
                 sim.set_state(x, v)
@@ -228,6 +229,7 @@ def sim_benchmark(
 
             sim.config.dt = dt  # the rollout plans with the same substep
             first_f, fwd = _median_ms(forward, repeats)
+            _, phased = _median_ms(lambda f=forward: f(phased=True), repeats)
             first_fb, fb = _median_ms(forward_backward, repeats)
             sim.config.dt = None
             m = store.n
@@ -247,6 +249,8 @@ def sim_benchmark(
                 "segment": segment,
                 "forward_ms_per_substep": round(fwd / steps, 3),
                 "forward_backward_ms_per_substep": round(fb / steps, 3),
+                "forward_phased_ms_per_substep": round(phased / steps, 3),
+                "fused_speedup": round(phased / fwd, 2),
                 "backward_over_forward": round(fb / fwd, 2),
                 "first_forward_ms": round(first_f, 1),
                 "first_forward_backward_ms": round(first_fb, 1),

@@ -83,8 +83,8 @@ def render(sizes, counts, repeats, scene, reference_limit, as_json, device, prec
 @precision_option
 def sim(counts, grids, repeats, segment, compile_, as_json, device, precision):
     """MPM forward and forward+backward milliseconds per substep (a falling elastic block, gravity, Coulomb ground,
-    walls), the memory of the differentiable state for one simulated second with and without checkpoints, and the
-    cold/warm compile time of the differentiable step."""
+    walls), the fused substep's speed-up over one kernel per phase, the memory of the differentiable state for one
+    simulated second with and without checkpoints, and the cold/warm compile time of the differentiable step."""
     from causalgs import _ti
     from causalgs.bench import sim_benchmark, sim_compile_benchmark
 
@@ -99,7 +99,7 @@ def sim(counts, grids, repeats, segment, compile_, as_json, device, precision):
         from rich.console import Console
         from rich.table import Table
 
-        cols = ("grid", "particles", "forward_ms_per_substep", "forward_backward_ms_per_substep",
+        cols = ("grid", "particles", "forward_ms_per_substep", "fused_speedup", "forward_backward_ms_per_substep",
                 "backward_over_forward", "memory_checkpointed_mb", "memory_full_tape_mb")  # fmt: skip
         table = Table(title=f"sim ({precision}, {rows[0]['arch'] if rows else device})")
         for col in cols:

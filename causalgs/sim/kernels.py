@@ -1,15 +1,18 @@
-"""MLS-MPM kernels (Hu et al. 2018, "A moving least squares material point method"), one phase per kernel.
+"""MLS-MPM kernels (Hu et al. 2018, "A moving least squares material point method").
 
 Layout follows taichi's mpm88 and difftaichi's diffmpm: quadratic B-spline weights, the 3×3×3 stencil unrolled with
 ``ti.static``, separate input/output grids, and particle state indexed by substep within a checkpoint segment:
 ``x[p, s]``, ``v[p, s]``, ``C[p, s]``, ``F[p, s]`` (the store's per-row axis). A substep reads slot ``s`` and writes
-slot ``s + 1``, so no kernel reads a field and then overwrites it (Taichi's global data access rule for autodiff):
+slot ``s + 1``, so no kernel reads a field and then overwrites it (Taichi's global data access rule for autodiff).
+Its phases:
 
-    particle_box(s) → clear_grid → stress(s) → [particle_terms(s)] → p2g(s) → grid_update → g2p(s)
+    particle box(s) → clear grid → stress(s) → [particle terms(s)] → P2G(s) → grid update → G2P(s)
 
-``stress`` (per particle: deformation update, plasticity, stress) is separate from ``p2g`` (the stencil scatter):
-two small kernels compile much faster than one large one, most of all their gradient kernels, and the scatter does
-not depend on the material model or the effects.
+The forward runs them as the top-level loops of one kernel, :func:`substep`: on a small scene a substep is bound
+by launch overhead, not arithmetic, and one launch instead of six measured ~2-3× faster at 27 particles. Each phase
+is also a kernel of its own (built from the same ``ti.func`` element), for its gradient: ``stress`` (per particle:
+deformation update, plasticity, stress) is separate from ``p2g`` (the stencil scatter) because two small gradient
+kernels compile much faster than one large one, and the scatter does not depend on the material model or effects.
 
 Particle loops run serially on the CPU (:func:`causalgs._ti.serial_scatter`): with the two cores here, contended
 float atomics cost far more than the parallelism gives.
@@ -31,15 +34,6 @@ from causalgs.sim.materials import kirchhoff, lame_ti
 
 # Grid mass (kg) below which a node is empty (see grid_update).
 MASS_EPS = 1e-12
-
-
-@ti.kernel
-def clear_grid(grid_v_in: ti.template(), grid_m: ti.template(), grid_v_out: ti.template(), box: ti.template()):
-    for i, j, k in ti.ndrange((box[0], box[3]), (box[1], box[4]), (box[2], box[5])):
-        I = ti.Vector([i, j, k])
-        grid_v_in[I] = ti.Vector.zero(float, 3)
-        grid_m[I] = 0.0
-        grid_v_out[I] = ti.Vector.zero(float, 3)
 
 
 @ti.func
@@ -67,22 +61,156 @@ def _weight_grad(fx, W, i: ti.template(), j: ti.template(), k: ti.template()):
     return ti.Vector([dW[i, 0] * W[j, 1] * W[k, 2], W[i, 0] * dW[j, 1] * W[k, 2], W[i, 0] * W[j, 1] * dW[k, 2]])
 
 
+# -- one element of each phase: the bodies of the phase kernels below and of the fused `substep` -----------------
+@ti.func
+def _box_reset(shape: ti.template(), box: ti.template()):
+    for d in ti.static(range(3)):
+        box[d] = shape[d]
+        box[d + 3] = 0
+
+
+@ti.func
+def _box_grow(xp, lo, inv_dx, shape: ti.template(), box: ti.template()):
+    b = _base((xp - lo) * inv_dx, shape)
+    for d in ti.static(range(3)):
+        ti.atomic_min(box[d], b[d])
+        ti.atomic_max(box[d + 3], b[d] + 3)
+
+
+@ti.func
+def _clear_node(I, grid_v_in: ti.template(), grid_m: ti.template(), grid_v_out: ti.template()):
+    grid_v_in[I] = ti.Vector.zero(float, 3)
+    grid_m[I] = 0.0
+    grid_v_out[I] = ti.Vector.zero(float, 3)
+
+
+@ti.func
+def _stress_at(p, C: ti.template(), F: ti.template(), vol: ti.template(), density: ti.template(), E: ti.template(),
+               nu: ti.template(), affine: ti.template(), s, dt, inv_dx, model: ti.template(),
+               effects: ti.template()):  # fmt: skip
+    mu, lam = lame_ti(E[p], nu[p])
+    F_new = effects.project((ti.Matrix.identity(float, 3) + dt * C[p, s]) @ F[p, s], mu, lam)
+    F[p, s + 1] = F_new
+    tau = kirchhoff(F_new, mu, lam, model) + effects.stress(F_new, C[p, s], mu, lam)
+    affine[p] = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + (density[p] * vol[p]) * C[p, s]
+
+
+@ti.func
+def _scatter_at(p, x: ti.template(), v: ti.template(), vol: ti.template(), density: ti.template(),
+                affine: ti.template(), grid_v_in: ti.template(), grid_m: ti.template(), s, lo, inv_dx):  # fmt: skip
+    base, fx, W = _stencil(x[p, s], lo, inv_dx, grid_m.shape)
+    mass = density[p] * vol[p]
+    mv = mass * v[p, s]
+    A = affine[p]
+    for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+        offset = ti.Vector([i, j, k])
+        dpos = (ti.cast(offset, float) - fx) / inv_dx
+        weight = W[i, 0] * W[j, 1] * W[k, 2]
+        grid_v_in[base + offset] += weight * (mv + A @ dpos)
+        grid_m[base + offset] += weight * mass
+
+
+@ti.func
+def _update_node(I, grid_v_in: ti.template(), grid_m: ti.template(), grid_v_out: ti.template(), dt, lo, dx,
+                 effects: ti.template()):  # fmt: skip
+    m = grid_m[I]
+    has = m > MASS_EPS
+    v = grid_v_in[I] / ti.select(has, m, 1.0)
+    xi = lo + ti.cast(I, float) * dx
+    v = effects.apply(v, xi, I, dt, dx, ti.static(grid_m.shape))
+    grid_v_out[I] = ti.select(has, v, ti.Vector.zero(float, 3))
+
+
+@ti.func
+def _gather_at(p, x: ti.template(), v: ti.template(), C: ti.template(), grid_v_out: ti.template(), s, dt, lo,
+               inv_dx):  # fmt: skip
+    base, fx, W = _stencil(x[p, s], lo, inv_dx, grid_v_out.shape)
+    new_v = ti.Vector.zero(float, 3)
+    new_C = ti.Matrix.zero(float, 3, 3)
+    for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
+        offset = ti.Vector([i, j, k])
+        dpos = ti.cast(offset, float) - fx
+        g_v = grid_v_out[base + offset]
+        weight = W[i, 0] * W[j, 1] * W[k, 2]
+        new_v += weight * g_v
+        new_C += (4.0 * inv_dx * weight) * g_v.outer_product(dpos)
+    v[p, s + 1] = new_v
+    C[p, s + 1] = new_C
+    x[p, s + 1] = x[p, s] + dt * new_v
+
+
+# -- the substep in one launch --------------------------------------------------------------------------------------
+@ti.kernel
+def substep(
+    x: ti.template(),
+    v: ti.template(),
+    vc: ti.template(),
+    v_scatter: ti.template(),
+    C: ti.template(),
+    F: ti.template(),
+    vol: ti.template(),
+    density: ti.template(),
+    E: ti.template(),
+    nu: ti.template(),
+    affine: ti.template(),
+    grid_v_in: ti.template(),
+    grid_m: ti.template(),
+    grid_v_out: ti.template(),
+    box: ti.template(),
+    s: ti.i32,
+    n: ti.i32,
+    dt: float,
+    lo: ti.template(),
+    inv_dx: float,
+    dx: float,
+    model: ti.template(),
+    effects: ti.template(),
+):
+    """One MLS-MPM substep, slot ``s`` → ``s + 1``: every phase of the module docstring, each a top-level loop
+    (Taichi runs a kernel's top-level loops one after another), in one launch instead of six or seven. The
+    backward recomputes a substep's grid with it too, so the phase kernels below compile only for their gradients
+    and for the tests and the benchmark that hold this kernel to them (``Simulator.step(phased=True)``).
+    ``v_scatter`` is what P2G scatters: ``vc`` when the effects have a particle stage, else ``v``."""
+    for _ in range(1):
+        _box_reset(grid_m.shape, box)
+    ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
+    for p in range(n):
+        _box_grow(x[p, s], lo[0], inv_dx, grid_m.shape, box)
+    for i, j, k in ti.ndrange((box[0], box[3]), (box[1], box[4]), (box[2], box[5])):
+        _clear_node(ti.Vector([i, j, k]), grid_v_in, grid_m, grid_v_out)
+    for p in range(n):
+        _stress_at(p, C, F, vol, density, E, nu, affine, s, dt, inv_dx, model, effects)
+    if ti.static(effects.has_particle):
+        for p in range(n):
+            vc[p, s] = effects.particle(v[p, s], x[p, s], dt)
+    ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
+    for p in range(n):
+        _scatter_at(p, x, v_scatter, vol, density, affine, grid_v_in, grid_m, s, lo[0], inv_dx)
+    for i, j, k in ti.ndrange((box[0], box[3]), (box[1], box[4]), (box[2], box[5])):
+        _update_node(ti.Vector([i, j, k]), grid_v_in, grid_m, grid_v_out, dt, lo[0], dx, effects)
+    ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
+    for p in range(n):
+        _gather_at(p, x, v, C, grid_v_out, s, dt, lo[0], inv_dx)
+
+
+# -- the phases one by one: their gradients (Taichi's autodiff) and the hand-written adjoints' checks -------------
 @ti.kernel
 def particle_box(x: ti.template(), s: ti.i32, n: ti.i32, lo: ti.template(), inv_dx: float, shape: ti.template(),
                  box: ti.template()):  # fmt: skip
     """The box of grid nodes the particles' stencils reach: ``box`` = [lo_i, lo_j, lo_k, hi_i, hi_j, hi_k) (hi
-    exclusive). Every grid kernel loops over this box only: nodes outside it hold stale values that no kernel of
-    this substep reads (a body in a 64³ grid touches a few percent of its nodes)."""
+    exclusive). Every grid loop runs over this box only: nodes outside it hold stale values that nothing in this
+    substep reads (a body in a 64³ grid touches a few percent of its nodes)."""
     for _ in range(1):
-        for d in ti.static(range(3)):
-            box[d] = shape[d]
-            box[d + 3] = 0
+        _box_reset(shape, box)
     ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
-        b = _base((x[p, s] - lo[0]) * inv_dx, shape)
-        for d in ti.static(range(3)):
-            ti.atomic_min(box[d], b[d])
-            ti.atomic_max(box[d + 3], b[d] + 3)
+        _box_grow(x[p, s], lo[0], inv_dx, shape, box)
+
+
+@ti.kernel
+def clear_grid(grid_v_in: ti.template(), grid_m: ti.template(), grid_v_out: ti.template(), box: ti.template()):
+    for i, j, k in ti.ndrange((box[0], box[3]), (box[1], box[4]), (box[2], box[5])):
+        _clear_node(ti.Vector([i, j, k]), grid_v_in, grid_m, grid_v_out)
 
 
 @ti.kernel
@@ -106,11 +234,7 @@ def stress(
     Kirchhoff stress (material + stress terms) folded with the APIC term into ``affine[p]`` (MLS-MPM eq. 29: the
     stress force uses ∇w ≈ 4/dx² w (x_i − x_p)). Mass = density · volume, so the density has a gradient."""
     for p in range(n):
-        mu, lam = lame_ti(E[p], nu[p])
-        F_new = effects.project((ti.Matrix.identity(float, 3) + dt * C[p, s]) @ F[p, s], mu, lam)
-        F[p, s + 1] = F_new
-        tau = kirchhoff(F_new, mu, lam, model) + effects.stress(F_new, C[p, s], mu, lam)
-        affine[p] = (-dt * vol[p] * 4.0 * inv_dx * inv_dx) * tau + (density[p] * vol[p]) * C[p, s]
+        _stress_at(p, C, F, vol, density, E, nu, affine, s, dt, inv_dx, model, effects)
 
 
 @ti.kernel
@@ -148,16 +272,7 @@ def p2g(
     the effects, so it compiles once)."""
     ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
-        base, fx, W = _stencil(x[p, s], lo[0], inv_dx, grid_m.shape)
-        mass = density[p] * vol[p]
-        mv = mass * v[p, s]
-        A = affine[p]
-        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-            offset = ti.Vector([i, j, k])
-            dpos = (ti.cast(offset, float) - fx) / inv_dx
-            weight = W[i, 0] * W[j, 1] * W[k, 2]
-            grid_v_in[base + offset] += weight * (mv + A @ dpos)
-            grid_m[base + offset] += weight * mass
+        _scatter_at(p, x, v, vol, density, affine, grid_v_in, grid_m, s, lo[0], inv_dx)
 
 
 @ti.kernel
@@ -225,13 +340,7 @@ def grid_update(
     below ``MASS_EPS``: at the edge of a B-spline's support a node can get a denormal mass in float32, whose adjoint
     −mv/m² overflows to inf and, times a zero adjoint, poisons every particle with NaN."""
     for i, j, k in ti.ndrange((box[0], box[3]), (box[1], box[4]), (box[2], box[5])):
-        I = ti.Vector([i, j, k])
-        m = grid_m[I]
-        has = m > MASS_EPS
-        v = grid_v_in[I] / ti.select(has, m, 1.0)
-        xi = lo[0] + ti.cast(I, float) * dx
-        v = effects.apply(v, xi, I, dt, dx, ti.static(grid_m.shape))
-        grid_v_out[I] = ti.select(has, v, ti.Vector.zero(float, 3))
+        _update_node(ti.Vector([i, j, k]), grid_v_in, grid_m, grid_v_out, dt, lo[0], dx, effects)
 
 
 @ti.kernel
@@ -249,19 +358,7 @@ def g2p(
     """Gather v and the APIC matrix C = 4/dx² Σ w v_i (x_i − x_p)ᵀ into slot s+1; advect x with the new v."""
     ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
-        base, fx, W = _stencil(x[p, s], lo[0], inv_dx, grid_v_out.shape)
-        new_v = ti.Vector.zero(float, 3)
-        new_C = ti.Matrix.zero(float, 3, 3)
-        for i, j, k in ti.static(ti.ndrange(3, 3, 3)):
-            offset = ti.Vector([i, j, k])
-            dpos = ti.cast(offset, float) - fx
-            g_v = grid_v_out[base + offset]
-            weight = W[i, 0] * W[j, 1] * W[k, 2]
-            new_v += weight * g_v
-            new_C += (4.0 * inv_dx * weight) * g_v.outer_product(dpos)
-        v[p, s + 1] = new_v
-        C[p, s + 1] = new_C
-        x[p, s + 1] = x[p, s] + dt * new_v
+        _gather_at(p, x, v, C, grid_v_out, s, dt, lo[0], inv_dx)
 
 
 @ti.kernel

@@ -206,10 +206,25 @@ class Simulator:
 
     # -- time stepping --------------------------------------------------------------------------------------------
     def substep(self, s: int, dt: float) -> None:
-        """One MLS-MPM substep from slot ``s`` to slot ``s + 1`` (0 ≤ s < segment). Low level: :meth:`step` keeps
-        the slot bookkeeping and uploads the effect parameters."""
+        """One MLS-MPM substep from slot ``s`` to slot ``s + 1`` (0 ≤ s < segment), in one kernel launch. Low
+        level: :meth:`step` keeps the slot bookkeeping and uploads the effect parameters."""
         st, g, geo = self.store, self.grid, self.geo
-        self._grid(s, dt)
+        scatter = st.vc_seg if self.effects.kernel.has_particle else st.v_seg
+        kernels.substep(st.x_seg, st.v_seg, st.vc_seg, scatter, st.C_seg, st.F_seg, st.vol, st.density, st.E, st.nu,
+                        st.mpm_affine, g.v_in, g.m, g.v_out, g.box, s, st.n, dt, self._lo(), geo.inv_dx, geo.dx,
+                        self.config.material, self.effects.kernel)  # fmt: skip
+
+    def substep_phased(self, s: int, dt: float) -> None:
+        """:meth:`substep` as one kernel per phase (six or seven launches): the same arithmetic, the reference the
+        fused kernel is tested and benchmarked against."""
+        st, g, geo = self.store, self.grid, self.geo
+        kernels.particle_box(st.x_seg, s, st.n, self._lo(), geo.inv_dx, geo.shape, g.box)
+        kernels.clear_grid(g.v_in, g.m, g.v_out, g.box)
+        kernels.stress(*self._stress_args(s, dt))
+        if self.effects.kernel.has_particle:
+            kernels.particle_terms(*self._particle_args(s, dt))
+        kernels.p2g(*self._p2g_args(s))
+        kernels.grid_update(g.v_in, g.m, g.v_out, dt, self._lo(), geo.dx, self.effects.kernel, g.box)
         kernels.g2p(st.x_seg, st.v_seg, st.C_seg, g.v_out, s, st.n, dt, self._lo(), geo.inv_dx)
 
     def _lo(self):
@@ -230,17 +245,6 @@ class Simulator:
         st = self.store
         return (st.x_seg, st.v_seg, st.vc_seg, s, st.n, dt, self.effects.kernel)
 
-    def _grid(self, s: int, dt: float) -> None:
-        """The grid of substep ``s``: the particles' box, clear, stress, P2G, grid update."""
-        g, geo = self.grid, self.geo
-        kernels.particle_box(self.store.x_seg, s, self.store.n, self._lo(), geo.inv_dx, geo.shape, g.box)
-        kernels.clear_grid(g.v_in, g.m, g.v_out, g.box)
-        kernels.stress(*self._stress_args(s, dt))
-        if self.effects.kernel.has_particle:
-            kernels.particle_terms(*self._particle_args(s, dt))
-        kernels.p2g(*self._p2g_args(s))
-        kernels.grid_update(g.v_in, g.m, g.v_out, dt, self._lo(), geo.dx, self.effects.kernel, g.box)
-
     def _boundary(self) -> None:
         """Start a new segment if the live one is full: copy its last slot into slot 0 (and checkpoint it)."""
         if self.slot < self.k:
@@ -250,16 +254,17 @@ class Simulator:
         if self._recording is not None:
             self._recording.append(Segment(start=self._read_slot(0)))
 
-    def step(self, substeps: int, dt: float | None = None, check=None) -> None:
+    def step(self, substeps: int, dt: float | None = None, check=None, phased: bool = False) -> None:
         """Advance ``substeps`` substeps of ``dt`` (default: the CFL time step of the current state).
 
         ``check(dt)``, if given, runs whenever a segment fills up (particles leaving the grid are caught before the
-        clamped stencils turn them into NaN)."""
+        clamped stencils turn them into NaN). ``phased``: one kernel per phase (:meth:`substep_phased`)."""
         dt = self.stable_dt() if dt is None else float(dt)
         self.effects.upload()
+        advance = self.substep_phased if phased else self.substep
         for _ in range(int(substeps)):
             self._boundary()
-            self.substep(self.slot, dt)
+            advance(self.slot, dt)
             self.slot += 1
             self.counter += 1
             self.time += dt
@@ -456,9 +461,10 @@ class Simulator:
         return out
 
     def _substep_grad(self, s: int, dt: float) -> None:
-        """Recompute the grid of substep ``s`` and run its gradient kernels in reverse order."""
+        """Recompute the grid of substep ``s`` and run its gradient kernels in reverse order. The recompute is the
+        whole substep (one launch; its G2P rewrites slot ``s + 1`` with the values it already holds)."""
         st, g, geo = self.store, self.grid, self.geo
-        self._grid(s, dt)
+        self.substep(s, dt)
         kernels.clear_grid_grad(g.v_in, g.m, g.v_out, g.box)
         st.zero_grad(["mpm_affine"])
         kernels.g2p_adjoint(st.x_seg, st.v_seg, st.C_seg, g.v_out, s, st.n, dt, self._lo(), geo.inv_dx)

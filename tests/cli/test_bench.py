@@ -19,6 +19,9 @@ def test_bench_sim_json(ti32):
     assert rec["bench"] == "sim" and rec["particles"] == 1000 and rec["grid"] == 16
     assert rec["forward_ms_per_substep"] > 0 and rec["forward_backward_ms_per_substep"] > rec["forward_ms_per_substep"]
     assert rec["memory_full_tape_mb"] > rec["memory_checkpointed_mb"] > 0
+    assert rec["forward_phased_ms_per_substep"] > 0
+    assert rec["fused_speedup"] == pytest.approx(rec["forward_phased_ms_per_substep"] / rec["forward_ms_per_substep"],
+                                                 rel=0.05)  # fmt: skip
 
 
 def test_bench_sim_help():
