@@ -3,16 +3,11 @@ are noise in float32), and tests that need float32 ask for it explicitly."""
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 
 import numpy as np
 import pytest
-
-if os.environ.get("PYTEST_XDIST_WORKER"):
-    # One test process per core (pytest -n): Taichi's CPU thread pool in each would contend for the same cores.
-    os.environ.setdefault("CAUSALGS_TI_THREADS", "1")
 
 
 @pytest.fixture
