@@ -9,10 +9,11 @@ Its phases:
     particle box(s) → clear grid → stress(s) → [particle terms(s)] → P2G(s) → grid update → G2P(s)
 
 The forward runs them as the top-level loops of one kernel, :func:`substep`: on a small scene a substep is bound
-by launch overhead, not arithmetic, and one launch instead of six measured ~2-3× faster at 27 particles. Each phase
-is also a kernel of its own (built from the same ``ti.func`` element), for its gradient: ``stress`` (per particle:
-deformation update, plasticity, stress) is separate from ``p2g`` (the stencil scatter) because two small gradient
-kernels compile much faster than one large one, and the scatter does not depend on the material model or effects.
+by launch overhead, not arithmetic (one launch instead of six or seven: 2.8× faster at 27 particles, 1.2× at 8000,
+``causalgs bench sim``). Each phase is also a kernel of its own (built from the same ``ti.func`` element), for its
+gradient: ``stress`` (per particle: deformation update, plasticity, stress) is separate from ``p2g`` (the stencil
+scatter) because two small gradient kernels compile much faster than one large one, and the scatter does not
+depend on the material model or the effects.
 
 Particle loops run serially on the CPU (:func:`causalgs._ti.serial_scatter`): with the two cores here, contended
 float atomics cost far more than the parallelism gives.
