@@ -284,9 +284,12 @@ def markdown(report: dict) -> str:
     L.append("")
     if tr:
         if tr.get("refined"):
+            saved = "tracks"  # the file :func:`causalgs.model.refine.cached_tracks` wrote them to
+            if tr.get("lens") == "affine":
+                saved = "tracks-bent" if tr.get("bend_bodies") else "tracks-affine"
             L += ["## The measurement", "",
                   "The measured motion is the run's tracked motion (its kinematic fit), refined frame by frame to "
-                  f"that frame's images (`{'tracks-affine' if tr.get('lens') == 'affine' else 'tracks'}.npz` in "
+                  f"that frame's images (`{saved}.npz` in "
                   f"the run). On {tr['views']} {tr['cameras']} camera(s) per "
                   f"frame it matches the images at a median PSNR of {tr['median']:.1f} dB over the "
                   f"{len(tr['frames'])} observed frames (the kinematic fit alone: {tr['median_kinematic']:.1f} dB; "

@@ -489,6 +489,10 @@ def test_the_report_weighs_the_held_out_error_against_what_a_correct_model_would
     text = markdown(rep)
     assert "in the bodies' motion and strain, which a free force and a free strain" in text
     assert "the affine tracks' error" not in text and "rigid motion of the bodies" not in text
+    assert "(`tracks-affine.npz` in the run)" in text and "bend each of" not in text
+    rep["tracking"]["bend_bodies"] = 1  # tracks that also bend the body: saved and named as such
+    text = markdown(rep)
+    assert "(`tracks-bent.npz` in the run)" in text and "They also bend each of 1 body(ies)" in text, text
     del rep["tracking"]
     # weighted residuals: the floors compare with the weighted errors, and both are shown
     rep["verdict"] = "no missing effect"
