@@ -284,9 +284,9 @@ def markdown(report: dict) -> str:
     L.append("")
     if tr:
         if tr.get("refined"):
-            saved = "tracks"  # the file :func:`causalgs.model.refine.cached_tracks` wrote them to
-            if tr.get("lens") == "affine":
-                saved = "tracks-bent" if tr.get("bend_bodies") else "tracks-affine"
+            from causalgs.model.refine import tracks_name
+
+            saved = tracks_name(tr.get("lens") == "affine", bool(tr.get("bend_bodies")))
             L += ["## The measurement", "",
                   "The measured motion is the run's tracked motion (its kinematic fit), refined frame by frame to "
                   f"that frame's images (`{saved}.npz` in "

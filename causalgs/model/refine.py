@@ -470,13 +470,19 @@ def _resume(path, key: str, n: int, rng, carried, made) -> int:
     return done
 
 
+def tracks_name(stretch: bool, bend: bool) -> str:
+    """The stem of the file :func:`cached_tracks` keeps tracks in: ``tracks``, ``tracks-affine`` with the stretch,
+    ``tracks-bent`` with the bend too."""
+    return ("tracks-bent" if bend else "tracks-affine") if stretch else "tracks"
+
+
 def cached_tracks(run_dir, model, data, timeline, cfg: RefineConfig | None = None, progress=None,
                   half: int | None = None, frames: int | None = None) -> Tracks:  # fmt: skip
     """The refined tracks of the run at ``run_dir``: read from its ``tracks.npz`` when that was made from this fit
     with these settings, else computed by :func:`refine_tracks` and written there (atomically). ``half``,
     ``frames``: fitted to that half of the cameras over the first so many frames (``tracks-half0.npz``, ...)."""
     cfg = cfg or RefineConfig()
-    name = ("tracks-bent" if cfg.bend else "tracks-affine") if cfg.stretch else "tracks"
+    name = tracks_name(cfg.stretch, cfg.bend)
     path = Path(run_dir) / (f"{name}.npz" if half is None else f"{name}-half{half}.npz")
     key = _key(model, cfg, half, frames)
     if path.is_file():
