@@ -186,6 +186,14 @@ def test_stray_particles_are_the_small_groups_apart_from_every_body():
     stray = stray_particles(x, 0.03)
     assert stray.tolist() == [False] * (len(block) + len(ball)) + [True] * 3
     assert not stray_particles(x[:5], 0.03).any()  # too few particles to call any of them strays
+    # A patch on the floor apart from a thrown block, 35 of 3410 particles (1.03%): too few to be a body (5%),
+    # though more than 1% (the share that once kept such a patch, which the simulation then left on the ground)
+    block = _cube(n=15, side=0.3)
+    gx, gy = np.meshgrid(np.arange(7) * 0.01, np.arange(5) * 0.01, indexing="ij")
+    patch = np.stack([gx.ravel() + 0.4, gy.ravel(), np.zeros(35)], -1)
+    x = np.concatenate([block, patch])
+    assert stray_particles(x, 0.03).tolist() == [False] * len(block) + [True] * len(patch)
+    assert not stray_particles(x, 0.03, share=0.01).any()  # a 1% share keeps it
 
 
 def test_calibration_recovers_a_throw_and_reaches_the_noise_floor():
