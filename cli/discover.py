@@ -210,6 +210,9 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
 @click.option("--weigh", is_flag=True,
               help="Video level: discover as `causalgs discover --weigh` (residuals weighed down where the rigid "
                    "tracks and the stretching ones refined from the same images disagree, as at an impact).")
+@click.option("--retry-failed", is_flag=True,
+              help="Run again the rows table.json holds as failed (each resumes from its last finished stage), "
+                   "once what made them fail is mended; without it a failed row is an outcome and is kept.")
 @click.option("--level", type=click.Choice(["trajectory", "video"]), default="trajectory", show_default=True,
               help="trajectory: simulated particle tracks with noise (minutes a case); video: a rendered video, a "
                    "fit and discovery on the run, end to end (about 20 minutes a flight case on 2 cores).")
@@ -218,7 +221,7 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
                    "pieces with --only and --first-seed) into --out, each row taken only where its video was "
                    "rendered as the case is defined now, a later table's row replacing an earlier one.")
 def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, jobs, rigid_tracks, lens, weigh,
-                   level, merge):
+                   retry_failed, level, merge):
     """Reproduce the hidden-effect table: for every effect of the catalogue, a tossed block simulated with it and
     a model without it; negative controls; an effect outside the catalogue.
 
@@ -232,7 +235,8 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
                         landing of 144; every stage resumes
 
     Each run goes to --out/CASE-sSEED; --out/table.md and table.json collect the rows and the goals reached. Rows
-    already in table.json are kept and not run again, so an interrupted table resumes.
+    already in table.json are kept and not run again, so an interrupted table resumes (--retry-failed: failed
+    rows too run again).
     """
     from causalgs import _ti
     from causalgs.discover.search import DiscoverConfig
@@ -270,12 +274,12 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
         vcfg = VideoTableConfig(seeds=seeds, first_seed=first_seed, only=names, control_seeds=control_seeds,
                                 jobs=jobs, discover=DiscoverConfig(res=res or 0, weigh=weigh),
                                 truth_grid=not (run_grid or res), lens=lens)  # fmt: skip
-        rows = run_video_table(out, vcfg, log=_console_log())
+        rows = run_video_table(out, vcfg, log=_console_log(), retry_failed=retry_failed)
     else:
         res = res or 20
         cfg = TableConfig(seeds=seeds, first_seed=first_seed, res=res, only=names, control_seeds=control_seeds,
                           jobs=jobs, rigid=rigid_tracks, discover=DiscoverConfig(res=res))  # fmt: skip
-        rows = run_table(out, cfg, log=_console_log())
+        rows = run_table(out, cfg, log=_console_log(), retry_failed=retry_failed)
     s = summary(rows)
     click.echo(json.dumps(s))
     click.echo(f"Wrote {out / 'table.md'}")

@@ -86,8 +86,8 @@ class Journal:
             if not isinstance(saved, dict) or saved.get("version") != VERSION or "entries" not in saved:
                 raise CausalGSError(f"{self.path}: not a progress file of this version of causalgs discover")
             if saved.get("fingerprint") != key:
-                raise CausalGSError(f"{self.path}: made with other options or another measurement; choose another "
-                                    "--out to start afresh")  # fmt: skip
+                raise CausalGSError(f"{self.path}: made with other options or another measurement; move "
+                                    f"{self.path.parent} away (or choose another --out) to start afresh")  # fmt: skip
             self.entries = dict(saved["entries"])
         if self._partial_path.is_file() and resume:
             try:

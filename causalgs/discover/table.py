@@ -241,17 +241,17 @@ def excess_removed(before: float, after: float, floor: float | None) -> float | 
     return 1.0 - max(after**2 - floor**2, 0.0) / (before**2 - floor**2)
 
 
-def run_table(out, cfg: TableConfig | None = None, log=None) -> list[dict]:
+def run_table(out, cfg: TableConfig | None = None, log=None, retry_failed: bool = False) -> list[dict]:
     """Every case × seed: writes ``out/CASE-sSEED/{observation.npz, report.json, report.md, plots}``, then
     ``out/table.json`` and ``out/table.md`` (updated after every run, so an interrupted table keeps its rows; rows
-    already in ``table.json`` are not run again). ``cfg.jobs`` > 1 runs that many cases at once, each in a fresh
-    process (Taichi and torch share the cores between them)."""
+    already in ``table.json`` are not run again, failed ones too unless ``retry_failed``). ``cfg.jobs`` > 1 runs
+    that many cases at once, each in a fresh process (Taichi and torch share the cores between them)."""
 
     cfg = cfg or TableConfig()
     log = log or (lambda msg: None)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    rows, todo = pending(out, measurement(cfg), plan(cfg))
+    rows, todo = pending(out, measurement(cfg), plan(cfg), retry_failed)
 
     def finish(row: dict) -> None:
         rows.append(row)
@@ -273,9 +273,10 @@ def measurement(cfg: TableConfig | dict) -> str:
     return "trajectory, rigid tracks" if rigid else "trajectory"
 
 
-def pending(out: Path, level: str, runs: list) -> tuple[list[dict], list]:
+def pending(out: Path, level: str, runs: list, retry_failed: bool = False) -> tuple[list[dict], list]:
     """(the rows ``out/table.json`` holds, the runs of ``runs`` it lacks); a table of another level there is a
-    one-line error."""
+    one-line error. ``retry_failed``: a failed row is dropped and its run is pending again (it resumes from its
+    last finished stage)."""
     from causalgs.io import read_json
 
     done = {}
@@ -284,7 +285,8 @@ def pending(out: Path, level: str, runs: list) -> tuple[list[dict], list]:
         if saved.get("level", "trajectory") != level:
             raise CausalGSError(f"{out / 'table.json'} holds a table of the {saved.get('level', 'trajectory')} level, "
                                 f"not of the {level} level: choose another --out")  # fmt: skip
-        done = {(r["case"], r["seed"]): r for r in saved.get("rows", [])}
+        done = {(r["case"], r["seed"]): r for r in saved.get("rows", [])
+                if not (retry_failed and str(r.get("verdict", "")).startswith("failed"))}
     return list(done.values()), [k for k in runs if k not in done]
 
 

@@ -273,15 +273,16 @@ def _worker(case_name: str, seed: int, cfg: VideoTableConfig, out: str) -> dict:
     return run_one(case_name, seed, cfg, Path(out))
 
 
-def run_video_table(out, cfg: VideoTableConfig | None = None, log=None) -> list[dict]:
+def run_video_table(out, cfg: VideoTableConfig | None = None, log=None, retry_failed: bool = False) -> list[dict]:
     """Every case × seed of ``cfg``: ``out/CASE-sSEED/{data, run, discover}``, then ``out/table.json`` and
-    ``out/table.md``, rewritten after every row. Rows already in ``table.json`` are kept; a case without a row
-    resumes from its last finished stage. ``cfg.jobs`` > 1 runs that many cases at once, each in a fresh process."""
+    ``out/table.md``, rewritten after every row. Rows already in ``table.json`` are kept (failed ones too unless
+    ``retry_failed``); a case without a row resumes from its last finished stage. ``cfg.jobs`` > 1 runs that many
+    cases at once, each in a fresh process."""
     cfg = cfg or VideoTableConfig()
     log = log or (lambda msg: None)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    rows, todo = table.pending(out, "video", plan(cfg))
+    rows, todo = table.pending(out, "video", plan(cfg), retry_failed)
 
     def finish(row: dict) -> None:
         rows.append(row)

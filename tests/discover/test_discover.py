@@ -248,15 +248,19 @@ def test_table_resumes_and_records_failures(tmp_path, monkeypatch):
     assert clean["future_truth_before_m"] < 1e-15 and clean["future_truth_after_m"] < 1e-15
     again = T.run_table(tmp_path, cfg)  # every row is there: nothing runs again
     assert len(again) == 6 and len(calls) == 6
+    retried = T.run_table(tmp_path, cfg, retry_failed=True)  # but the failed one when told to retry it
+    assert len(retried) == 6 and len(calls) == 7
+    assert [r["case"] for r in retried if r["verdict"].startswith("failed")] == [failed[0]["case"]]
+    assert sorted((r["case"], r["seed"]) for r in retried) == sorted((r["case"], r["seed"]) for r in again)
     saved = json.loads((tmp_path / "table.json").read_text())
     assert saved["summary"]["controls_no_effect"] == 1.0 and saved["summary"]["runs"] == 6
     again = T.rescore(tmp_path)  # scored anew from the saved reports, nothing run
-    assert len(again) == 6 and len(calls) == 6
+    assert len(again) == 6 and len(calls) == 7
     assert json.loads((tmp_path / "table.json").read_text())["rows"] == saved["rows"]
     assert saved["level"] == "trajectory"
     with pytest.raises(CausalGSError, match="of the trajectory level, not of the trajectory, rigid tracks level"):
         T.run_table(tmp_path, T.TableConfig(only=("control", "outside"), rigid=True))  # rows of two measurements
-    assert len(calls) == 6
+    assert len(calls) == 7
 
 
 def test_predictions_are_scored_against_the_noise_free_truth(tmp_path):
