@@ -1118,6 +1118,34 @@ def test_the_best_two_by_screen_gain_are_refitted_whenever_it_is_positive():
     assert keys([s("plasticity", 0.392), s("damping", 0.016)], DiscoverConfig(min_finalists=0)) == ["plasticity"]
 
 
+def test_a_base_with_its_elasticity_at_a_bound_brings_the_deforming_candidates_to_the_refits():
+    """The video-level damping landing, seed 1: the base fitted the window stiff (E = 289 kPa, truth 28.5) with ν
+    at its bound, and damping screened third at +0.007, under ``min_gain``. With ν held at a bound, every candidate
+    that acts only through deformation (damping, plasticity) whose gain is positive is refitted; with the
+    elasticity free, the rule is the screen's alone, and a deforming candidate the screen finds no better than the
+    base (a flight, where nothing deforms) is never brought in."""
+    from causalgs.discover.candidates import BY_KEY
+    from causalgs.discover.screen import Screened
+    from causalgs.discover.search import DEFORMING, DiscoverConfig, pick_finalists
+
+    def s(key, gain):
+        return Screened(BY_KEY[key], gain, {}, None, None)
+
+    assert {c.key for c in BY_KEY.values() if c.driver in DEFORMING} == {"damping", "plasticity"}
+    flat = {"v": 0.1, "vv": 0.1, "contact": 0.0, "const": 0.1, "internal": 0.0}
+    screened = [s("plasticity", 0.215), s("force", 0.015), s("damping", 0.007), s("linear_drag", 0.001)]
+
+    def keys(screened, pinned=()):
+        return [f.candidate.key for f in pick_finalists(screened, flat, DiscoverConfig(), pinned)]
+
+    assert keys(screened) == ["plasticity", "force"]
+    assert keys(screened, ["block.nu"]) == ["plasticity", "force", "damping"]
+    assert keys(screened, ["block.E"]) == ["plasticity", "force", "damping"]
+    # not a deforming candidate by the rule (linear drag), nor one the screen finds no better than the base
+    assert keys([s("force", 0.3), s("damping", 0.0), s("plasticity", -0.1), s("linear_drag", 0.001)],
+                ["block.nu"]) == ["force", "linear_drag"]  # fmt: skip
+
+
 def test_a_confusable_partner_of_a_finalist_is_refitted_and_a_structural_one_takes_no_place_by_gain():
     """The video-level friction landing, seed 2: the frictionless base missed the slide and every candidate that
     slows it screened alike, friction fifth. Sticky ground, refitted whatever its screen says, takes none of the
