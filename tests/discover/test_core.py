@@ -1340,7 +1340,7 @@ def test_predictive_spread_follows_least_squares_for_a_throw():
 def test_a_refit_starts_afresh_from_what_the_missing_effect_biased():
     """The second refit start keeps the candidate's new parameters and a base stiffness inside its range, but resets
     the Poisson ratio, the throw, and a stiffness pinned at a bound of its range (a block gone as soft as allowed to
-    mimic plastic flow) to the middle of the base calibration's starts."""
+    mimic plastic flow) or whose Poisson ratio is, to the middle of the base calibration's starts."""
     from causalgs import _ti
     from causalgs.discover.model import PhysicsModel
     from causalgs.discover.search import fresh_start
@@ -1354,8 +1354,13 @@ def test_a_refit_starts_afresh_from_what_the_missing_effect_biased():
     assert math.isclose(vals["cube.nu"], 0.3, rel_tol=1e-6)
     assert math.isclose(vals["cube.v0[0]"], 0.4, rel_tol=1e-6)  # the throw from the first frames
     assert math.isclose(vals["linear_drag.c"], 0.7, rel_tol=1e-6)
-    th = m.initial(E=3e4, nu=0.45)
-    assert math.isclose(m.values(fresh_start(m, th, [], starts=(1e4, 1e5)))["cube.E"], 3e4, rel_tol=1e-6)
+    th = m.initial(E=5e4, nu=0.4)
+    assert not m.pinned(th)
+    assert math.isclose(m.values(fresh_start(m, th, [], starts=(1e4, 1e5)))["cube.E"], 5e4, rel_tol=1e-6)
+    # a Poisson ratio at its bound says the elasticity as a whole was bent: the stiffness restarts too
+    th = m.initial(E=5e4, nu=0.45)
+    assert m.pinned(th) == {"cube.nu": "upper"}
+    assert math.isclose(m.values(fresh_start(m, th, [], starts=(1e4, 1e5)))["cube.E"], math.sqrt(1e9), rel_tol=1e-6)
 
 
 def test_a_yield_stress_refit_starts_where_the_probe_saw_plastic_flow():
