@@ -298,7 +298,8 @@ def fresh_start(model: PhysicsModel, theta: torch.Tensor, params, starts) -> tor
     E = 31.6 kPa ended at E = 28.0 kPa, η = 203 on 0.0164 cm²."""
     mid = math.exp(float(np.mean(np.log(starts))))
     alt = model.initial(E=mid)
-    bent = {model.knobs[model.index(n)].body for n in model.pinned(theta) if model.knobs[model.index(n)].kind == "nu"}
+    nus = model.pinned(theta, [k.name for k in model.knobs if k.kind == "nu"])
+    bent = {k.body for k in model.knobs if k.name in nus}  # bodies whose Poisson ratio is held at a bound
     for i, k in enumerate(model.knobs):
         if k.name in params:
             alt[i] = theta[i]
@@ -1053,8 +1054,8 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         where = f"round {round_ + 1}" + (f" after {'+'.join(accepted)}" if accepted else "")
         screened = screen(current.model, current.fit.theta, pool, fit_frames(current.model))
         sig = report["disagreement"]["signatures"] if round_ == 0 else current_signatures(current, obs)
-        elastic = [n for n in current.model.pinned(current.fit.theta)
-                   if current.model.knobs[current.model.index(n)].kind in ("E", "nu")]  # fmt: skip
+        elastic = list(current.model.pinned(current.fit.theta, [k.name for k in current.model.knobs
+                                                                if k.kind in ("E", "nu")]))  # fmt: skip
         finalists = pick_finalists(screened, sig, cfg, elastic)
         entry = {"screen": [{"effect": s.candidate.key, "gain": s.gain, "step": s.step,
                              "signature_share": sig.get(s.candidate.driver)} for s in screened],
