@@ -10,6 +10,12 @@ is a one-line error rather than a silently mixed result. The calibration under w
 (``calibrating.json`` beside it: the scan's points so far, the warm-up, every accepted Levenberg–Marquardt
 iteration; :class:`~causalgs.discover.calibrate.Resume`), so a stop loses at most an iteration of it.
 
+A name says where a calibration happens, not where it starts: a change of the loop's starting rules (a refit's second
+start taken elsewhere) keeps every name. So each entry and each kept state records its start θ (``"from"``), and one
+whose start differs from the one asked for now (by more than :data:`SAME_START`, far above the last bits in which two
+rollouts of one θ differ) is computed again and replaced rather than silently returned. Entries written before
+starts were recorded carry none and are taken as they are.
+
 The fingerprint covers what a calibration's result depends on (:func:`calibration_options`: the model, its grid,
 the starts, the iteration budget), not what decides between results (the gate, the ambiguity margins, the number
 of rounds): a run re-judged with another gate reuses every calibration it still needs. Names carry the effects
@@ -32,6 +38,7 @@ from causalgs.errors import CausalGSError
 from causalgs.io import read_json, write_json
 
 VERSION = 1
+SAME_START = 1e-3  # θ's units (log-stiffness and logit ratios, m/s): a start further off in any entry is another start
 
 
 def calibration_options(spec: str, learn, cfg, start: dict | None = None) -> dict:
@@ -75,6 +82,7 @@ class Journal:
         self.key = key
         self.entries: dict[str, dict] = {}
         self.reused = 0
+        self.restarted: list[str] = []  # names whose kept result began from another start: computed again
         self.partial: dict[str, dict] = {}  # the calibration under way: its name → its states (Resume)
         if self.path is None:
             return
@@ -107,17 +115,23 @@ class Journal:
     def calibrate(self, name: str, model, theta: torch.Tensor, **options) -> Fit:
         """The calibration ``name`` (:func:`~causalgs.discover.calibrate.calibrate` of ``model`` from ``theta`` with
         ``options``): from the file when finished before, else computed and recorded at once."""
+        begin = [float(v) for v in theta.detach().double()]
         e = self.entries.get(name)
-        if e is not None:
+        if e is not None and same_start(e.get("from"), begin):
             self.reused += 1
             return Fit(torch.tensor(e["theta"], dtype=torch.float64), float(e["loss"]), int(e["evaluations"]),
                        float(e["start"]))  # fmt: skip
+        if e is not None:
+            self.restarted.append(name)
         t0 = time.monotonic()
-        states = self.partial.setdefault(name, {})
+        states = self.partial.get(name)
+        if states is None or not same_start(states.get("from"), begin):
+            states = self.partial[name] = {"from": begin}
+        states.setdefault("from", begin)
         spent = float(states.get("seconds", 0.0))  # before the stop, when it goes on from a kept state
         f = calibrate(model, theta, **options, resume=Resume(states, lambda: self._keep(name, t0, spent)))
         self.entries[name] = {"theta": [float(v) for v in f.theta.detach().double()], "loss": _finite(f.loss),
-                              "evaluations": int(f.evaluations), "start": float(f.start),
+                              "evaluations": int(f.evaluations), "start": float(f.start), "from": begin,
                               "seconds": round(spent + time.monotonic() - t0, 2)}  # fmt: skip
         self._write()
         self.partial.pop(name, None)
@@ -140,6 +154,16 @@ class Journal:
             write_json(self._partial_path, {"version": VERSION, "fingerprint": self.key, "states": self.partial})
         else:
             self._partial_path.unlink(missing_ok=True)
+
+
+def same_start(kept: list | None, begin: list[float]) -> bool:
+    """Whether a kept calibration began from ``begin``: the same length and every entry within :data:`SAME_START`
+    (relative beyond 1). ``kept`` None (an entry written before starts were recorded) counts as the same."""
+    if kept is None:
+        return True
+    if len(kept) != len(begin):
+        return False
+    return all(abs(a - b) <= SAME_START * max(1.0, abs(b)) for a, b in zip(kept, begin))
 
 
 def _finite(v: float) -> float:

@@ -1199,5 +1199,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
     report["final_spec"] = current.model.spec_at(current.fit.theta)
     report["seconds"] = time.monotonic() - t0
     report["calibrations_resumed"] = journal.reused
+    if journal.restarted:  # kept from another start (the starting rules changed): computed again
+        report["calibrations_restarted"] = list(journal.restarted)
     traj = {"before": first.sim, "after": current.sim}
     return report, traj

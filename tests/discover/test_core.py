@@ -1754,6 +1754,52 @@ def test_a_stopped_calibration_goes_on_from_its_last_kept_state(tmp_path, monkey
     assert torch.allclose(again.theta, whole.theta, atol=1e-4)
 
 
+def test_a_kept_calibration_is_reused_only_from_its_own_start(tmp_path, monkeypatch):
+    """A journal names a calibration by where it happens, so a change of the starting rules keeps its name: the entry
+    records its start θ and is returned only when asked from that start (up to the last bits in which two rollouts
+    differ). From another start it is computed again and replaced, and the run says so; a kept state of a stopped
+    calibration from another start is dropped. An entry written before starts were recorded is taken as it is."""
+    import json
+
+    from causalgs.discover import journal as J
+    from causalgs.discover.calibrate import Fit
+
+    calls = []
+
+    def fake(model, theta, resume=None, **options):
+        calls.append(theta.clone())
+        if resume is not None:
+            resume.put("lm", {"theta": [float(v) for v in theta]})
+        return Fit(theta + 1.0, float(theta.sum()), 3, 3e4)
+
+    monkeypatch.setattr(J, "calibrate", fake)
+    path = tmp_path / "progress.json"
+    a, b = torch.tensor([0.5, -2.0, 1.2], dtype=torch.float64), torch.tensor([-1.1, -2.0, 1.2], dtype=torch.float64)
+    first = J.Journal(path, "key").calibrate("round 1/damping/start 2", None, a)
+    assert len(calls) == 1 and json.loads(path.read_text())["entries"]["round 1/damping/start 2"]["from"] == a.tolist()
+    j = J.Journal(path, "key", resume=True)
+    same = j.calibrate("round 1/damping/start 2", None, a + 1e-7)  # the same start, through other rounding
+    assert len(calls) == 1 and j.reused == 1 and not j.restarted and torch.equal(same.theta, first.theta)
+    moved = j.calibrate("round 1/damping/start 2", None, b)
+    assert len(calls) == 2 and j.restarted == ["round 1/damping/start 2"] and torch.equal(moved.theta, b + 1.0)
+    assert J.Journal(path, "key", resume=True).calibrate("round 1/damping/start 2", None, b).loss == moved.loss
+    assert len(calls) == 2  # the replaced entry is the one kept
+    # an entry of an older file, without its start: taken as it is
+    saved = json.loads(path.read_text())
+    del saved["entries"]["round 1/damping/start 2"]["from"]
+    path.write_text(json.dumps(saved))
+    assert J.Journal(path, "key", resume=True).calibrate("round 1/damping/start 2", None, a).loss == moved.loss
+    assert len(calls) == 2
+    # a stopped calibration's kept state from another start is not gone on from
+    (tmp_path / "calibrating.json").write_text(json.dumps({"version": J.VERSION, "fingerprint": "key", "states": {
+        "round 1/plasticity/start 1": {"from": b.tolist(), "lm": {"theta": b.tolist()}, "seconds": 5.0}}}))
+    seen = []
+    monkeypatch.setattr(J, "calibrate", lambda m, th, resume=None, **o: seen.append(dict(resume.states)) or fake(
+        m, th, resume=resume))
+    J.Journal(path, "key", resume=True).calibrate("round 1/plasticity/start 1", None, a)
+    assert seen[0] == {"from": a.tolist()}  # neither the state nor its seconds carried over
+
+
 def test_a_candidates_screen_step_stays_within_its_range():
     """A push along the motion looks like a negative drag: the free least-squares step puts the drag coefficient
     below zero, which no drag can be. The step is held at the range's end, and the gain is what the candidate can

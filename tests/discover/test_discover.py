@@ -126,7 +126,7 @@ def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_
     r = CliRunner().invoke(cli, [*args, "--resume"])
     assert r.exit_code == 0, r.output
     again = json.loads(r.output)
-    assert again["calibrations_resumed"] == len(done)
+    assert again["calibrations_resumed"] == len(done) and "calibrations_restarted" not in again  # the same starts
     assert again["discovered"][0]["params"] == rep["discovered"][0]["params"]
     # Options that decide between calibrations (how many effects at most) reuse them; options that change a
     # calibration's result (its iteration budget) are not mixed in.
