@@ -163,7 +163,7 @@ def same_start(kept: list | None, begin: list[float]) -> bool:
         return True
     if len(kept) != len(begin):
         return False
-    return all(abs(a - b) <= SAME_START * max(1.0, abs(b)) for a, b in zip(kept, begin))
+    return all(abs(a - b) <= SAME_START * max(1.0, abs(b)) for a, b in zip(kept, begin, strict=True))
 
 
 def _finite(v: float) -> float:
