@@ -126,8 +126,8 @@ class Journal:
         t0 = time.monotonic()
         states = self.partial.get(name)
         if states is None or not same_start(states.get("from"), begin):
-            states = self.partial[name] = {"from": begin}
-        states.setdefault("from", begin)
+            states = self.partial[name] = {}
+        states["from"] = begin
         spent = float(states.get("seconds", 0.0))  # before the stop, when it goes on from a kept state
         f = calibrate(model, theta, **options, resume=Resume(states, lambda: self._keep(name, t0, spent)))
         self.entries[name] = {"theta": [float(v) for v in f.theta.detach().double()], "loss": _finite(f.loss),
@@ -158,12 +158,9 @@ class Journal:
 
 def same_start(kept: list | None, begin: list[float]) -> bool:
     """Whether a kept calibration began from ``begin``: the same length and every entry within :data:`SAME_START`
-    (relative beyond 1). ``kept`` None (an entry written before starts were recorded) counts as the same."""
-    if kept is None:
-        return True
-    if len(kept) != len(begin):
-        return False
-    return all(abs(a - b) <= SAME_START * max(1.0, abs(b)) for a, b in zip(kept, begin, strict=True))
+    (absolute, plus as much relative). ``kept`` None (an entry written before starts were recorded) counts as the
+    same."""
+    return kept is None or (len(kept) == len(begin) and np.allclose(kept, begin, rtol=SAME_START, atol=SAME_START))
 
 
 def _finite(v: float) -> float:
