@@ -162,7 +162,7 @@ def jacobian(model: PhysicsModel, theta: torch.Tensor, frames, indices=None, bas
 
 
 def calibrate(model: PhysicsModel, theta0: torch.Tensor, frames=None, *, iterations: int = 25,
-              free=None, warm: float = 0.0, method: str = "auto", scan: bool = False,
+              free=None, warm: float = 0.0, method: str = "auto", scan: bool = False, reach: int = 1,
               resume: Resume | None = None) -> Fit:  # fmt: skip
     """Levenberg–Marquardt (``method="lm"``) or L-BFGS (``"lbfgs"``; ``"auto"``: Levenberg–Marquardt for at most
     ``LM_MAX_PARAMS`` free parameters) from ``theta0`` on ``frames`` (default: the fit window), at most
@@ -171,7 +171,7 @@ def calibrate(model: PhysicsModel, theta0: torch.Tensor, frames=None, *, iterati
     horizon is nearly convex in the throw and the forces, so the long one starts in the right basin rather than
     where parameters compensate for one another (a friction that mimics a forward push, a throw that mimics drag).
     ``scan``: start instead from the best point of a coarse grid of materials and learned effect parameters
-    (:func:`scanned_start`). ``resume``: where the calibration keeps its state as it goes and goes on from
+    (:func:`scanned_start`, its planes' heights ``reach`` units either side). ``resume``: where the calibration keeps its state as it goes and goes on from
     (:class:`Resume`; None: nowhere)."""
     if method not in ("auto", "lm", "lbfgs"):
         raise CausalGSError(f"calibration method '{method}' is not one of auto, lm, lbfgs")
@@ -179,7 +179,7 @@ def calibrate(model: PhysicsModel, theta0: torch.Tensor, frames=None, *, iterati
         method = "lm" if (len(theta0) if free is None else len(list(free))) <= LM_MAX_PARAMS else "lbfgs"
     frames = fit_frames(model) if frames is None else list(frames)
     if scan:
-        theta0 = scanned_start(model, theta0, frames, resume=resume)
+        theta0 = scanned_start(model, theta0, frames, resume=resume, reach=reach)
     if warm > 0 and len(frames) >= 6:
         head = frames[: max(3, round(warm * len(frames)))]
         done = None if resume is None else resume.get("warm")
@@ -235,10 +235,12 @@ SCAN_NU = (0.2, 0.3, 0.4)
 SCAN_MAX = 250  # rollouts at most: beyond, the learned effect parameters keep their start
 
 
-def scanned_start(model: PhysicsModel, theta0: torch.Tensor, frames, resume: Resume | None = None) -> torch.Tensor:
+def scanned_start(model: PhysicsModel, theta0: torch.Tensor, frames, resume: Resume | None = None,
+                  reach: int = 1) -> torch.Tensor:  # fmt: skip
     """``theta0`` moved to the best point (lowest error over ``frames``, one rollout each) of a coarse grid: every
     body at each stiffness of ``SCAN_E`` and ratio of ``SCAN_NU``, each learned effect parameter at its start and
-    one unit (:data:`~causalgs.discover.model.SCALES`) either side. The throw keeps its start.
+    one unit (:data:`~causalgs.discover.model.SCALES`) either side, a plane's height (``ground.d``) ``reach`` units
+    either side. The throw keeps its start.
 
     A contact makes the window's error a rough function of the materials, the friction and the ground: from a start
     by the flight alone, a bounce goes to the basin nearest it. On the landing control from video (seed 1, 81
@@ -255,11 +257,12 @@ def scanned_start(model: PhysicsModel, theta0: torch.Tensor, frames, resume: Res
     start = model.values(theta0)
     effects, levels = [], []
     for i, k in enumerate(model.knobs):
-        if k.kind == "effect":  # its start, and a unit either side where that stays inside its bounds
+        if k.kind == "effect":  # its start, and a unit (or more) either side where that stays inside its bounds
             v = start[k.name]
             effects.append(i)
-            levels.append([v] + [w for w in (v - k.scale, v + k.scale) if (k.lower is None or w > k.lower)
-                                 and (k.upper is None or w < k.upper)])  # fmt: skip
+            steps = range(1, (reach if k.name.endswith(".d") else 1) + 1)
+            levels.append([v] + [w for j in steps for w in (v - j * k.scale, v + j * k.scale)
+                                 if (k.lower is None or w > k.lower) and (k.upper is None or w < k.upper)])  # fmt: skip
     grid = list(itertools.product(*levels))
     if len(mats) * len(grid) > SCAN_MAX:
         grid = grid[:1]

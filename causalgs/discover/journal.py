@@ -13,8 +13,8 @@ iteration; :class:`~causalgs.discover.calibrate.Resume`), so a stop loses at mos
 A name says where a calibration happens, not where it starts: a change of the loop's starting rules (a refit's second
 start taken elsewhere) keeps every name. So each entry and each kept state records its start θ (``"from"``), and one
 whose start differs from the one asked for now (by more than :data:`SAME_START`, far above the last bits in which two
-rollouts of one θ differ) is computed again and replaced rather than silently returned. Entries written before
-starts were recorded carry none and are taken as they are.
+rollouts of one θ differ), or that scanned around it otherwise (:func:`same_scan`), is computed again and replaced
+rather than silently returned. Entries written before starts were recorded carry none and are taken as they are.
 
 The fingerprint covers what a calibration's result depends on (:func:`calibration_options`: the model, its grid,
 the starts, the iteration budget), not what decides between results (the gate, the ambiguity margins, the number
@@ -39,6 +39,13 @@ from causalgs.io import read_json, write_json
 
 VERSION = 1
 SAME_START = 1e-3  # θ's units (log-stiffness and logit ratios, m/s): a start further off in any entry is another start
+
+
+def same_scan(entry: dict, scan: int) -> bool:
+    """Whether the kept ``entry`` (or state) moved its start as ``scan`` says: 0 not at all, else the reach of the
+    grid scan of its planes' heights (:func:`~causalgs.discover.calibrate.scanned_start`). Entries written before
+    the scan was recorded carry none and are taken as they are, unless asked for a wider scan than any then."""
+    return entry.get("scan", scan if scan <= 1 else None) == scan
 
 
 def calibration_options(spec: str, learn, cfg, start: dict | None = None) -> dict:
@@ -116,8 +123,9 @@ class Journal:
         """The calibration ``name`` (:func:`~causalgs.discover.calibrate.calibrate` of ``model`` from ``theta`` with
         ``options``): from the file when finished before, else computed and recorded at once."""
         begin = [float(v) for v in theta.detach().double()]
+        scan = int(options.get("reach", 1)) if options.get("scan") else 0
         e = self.entries.get(name)
-        if e is not None and same_start(e.get("from"), begin):
+        if e is not None and same_start(e.get("from"), begin) and same_scan(e, scan):
             self.reused += 1
             return Fit(torch.tensor(e["theta"], dtype=torch.float64), float(e["loss"]), int(e["evaluations"]),
                        float(e["start"]))  # fmt: skip
@@ -125,14 +133,15 @@ class Journal:
             self.restarted.append(name)
         t0 = time.monotonic()
         states = self.partial.get(name)
-        if states is None or not same_start(states.get("from"), begin):
+        if states is None or not same_start(states.get("from"), begin) or not same_scan(states, scan):
             states = self.partial[name] = {}
         states["from"] = begin
+        states["scan"] = scan
         spent = float(states.get("seconds", 0.0))  # before the stop, when it goes on from a kept state
         f = calibrate(model, theta, **options, resume=Resume(states, lambda: self._keep(name, t0, spent)))
         self.entries[name] = {"theta": [float(v) for v in f.theta.detach().double()], "loss": _finite(f.loss),
                               "evaluations": int(f.evaluations), "start": float(f.start), "from": begin,
-                              "seconds": round(spent + time.monotonic() - t0, 2)}  # fmt: skip
+                              "scan": scan, "seconds": round(spent + time.monotonic() - t0, 2)}  # fmt: skip
         self._write()
         self.partial.pop(name, None)
         self._write_partial()

@@ -216,11 +216,15 @@ def _refit(base: State, s, cfg: DiscoverConfig, journal: Journal, where: str) ->
     # contact itself, so its error is a rough function of the materials and the ground: its first start is scanned.
     # On the video-level sticky landing (seed 1) the sticky model from the base's θ calibrated to 3.45 cm² (E 311 kPa,
     # the ground 8 mm high); from its own scan, 0.0285 cm² (E 27.1 kPa, the ground 0.7 mm low), below every other
-    # refit.
+    # refit. A candidate that adds a term to the base's own contact (friction on a ground fitted without it) finds a
+    # ground that the base has moved to make up for the missing term: both its starts are scanned, the ground's
+    # height :data:`CONTACT_REACH` units either side (:func:`~causalgs.discover.calibrate.scanned_start`).
+    added = c.replaces is None and c.driver == "contact"
+    reach = CONTACT_REACH if added else 1
     fits = [journal.calibrate(f"{where}/{c.key}/start 1", model, th, iterations=cfg.iterations, warm=cfg.warm,
-                              scan=c.replaces is not None),
+                              scan=c.replaces is not None or added, reach=reach),
             journal.calibrate(f"{where}/{c.key}/start 2", model, fresh_start(model, th, c.params, cfg.starts),
-                              iterations=cfg.iterations, warm=cfg.warm)]  # fmt: skip
+                              iterations=cfg.iterations, warm=cfg.warm, scan=added, reach=reach)]  # fmt: skip
     fits = unpin(journal, f"{where}/{c.key}", model, fits, cfg)
     best = min(fits, key=lambda f: f.loss)
     st = _state(model, best)
@@ -228,6 +232,13 @@ def _refit(base: State, s, cfg: DiscoverConfig, journal: Journal, where: str) ->
     return st
 
 
+# Units of a plane's height (1 cm) either side of a contact candidate's starts that their scans try. On the video-level
+# friction landing (seed 0) the base without friction had raised the ground 1.9 cm (and softened the block to 13 kPa:
+# a softer block on a higher ground rests as low); both friction starts calibrated from there to 0.2184 cm² at
+# μ = 0.55, the ground 2.0 cm high, E 9.3 kPa. Scanned one unit either side, the first start stayed there; two units
+# either side, it went to E 100 kPa with the ground 1 mm low and calibrated to 0.0193 cm² at μ = 0.262 (truth 0.3),
+# E 40.0 kPa (38.3), the ground 1.3 mm low, as a start at the truth's own ground did.
+CONTACT_REACH = 2
 REBASE_GAIN = 0.99  # a base recalibrated from a refit replaces the current one where it fits 1% better
 
 

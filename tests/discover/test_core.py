@@ -967,6 +967,13 @@ def test_a_scan_starts_a_bounce_at_the_best_point_of_its_grid(monkeypatch):
             assert float(mse(m, th, frames)) >= best - 1e-12
     throw = [i for i, k in enumerate(m.knobs) if k.kind in ("u", "w")]
     assert torch.equal(got[throw], start[throw])
+    # reach 2: the ground's height two units (2 cm) either side, the friction still one
+    seen = []
+    monkeypatch.setattr(C, "mse", lambda m_, th, fr: seen.append(m_.values(th)) or torch.tensor(1.0))
+    C.scanned_start(m, start, frames, reach=2)
+    assert len(seen) == len(C.SCAN_E) * len(C.SCAN_NU) * 3 * 5
+    assert sorted({round(v["ground.d"], 6) for v in seen}) == [-0.01, 0.0, 0.01, 0.02, 0.03]
+    assert sorted({round(v["ground.mu"], 6) for v in seen}) == [0.3, 0.6, 0.9]
 
 
 def test_lens_floor_keeps_point_noise_and_removes_rigid_misfit():
@@ -1178,7 +1185,8 @@ def test_a_confusable_partner_of_a_finalist_is_refitted_and_a_structural_one_tak
 def test_a_structural_refit_starts_first_from_a_scan_of_its_own():
     """Sticky ground replaces the sliding contact: its first refit start is scanned (materials × the ground's
     offset), since the base's θ is tuned to another contact law; its second start, and both starts of an added
-    effect (damping), are not."""
+    effect (damping), are not. Friction added to a frictionless ground scans both its starts, the ground's height
+    two units either side: the base without it may have moved the ground."""
     from causalgs.discover.calibrate import Fit
     from causalgs.discover.candidates import BY_KEY
     from causalgs.discover.model import PhysicsModel
@@ -1197,13 +1205,16 @@ def test_a_structural_refit_starts_first_from_a_scan_of_its_own():
         def __init__(self):
             self.calls = []
 
-        def calibrate(self, name, model, theta0, scan=False, **kw):
-            self.calls.append((name, scan))
+        def calibrate(self, name, model, theta0, scan=False, reach=1, **kw):
+            self.calls.append((name, scan and reach))
             return Fit(theta0.clone(), 1.0, 1, 3e4)
 
-    for key, want in (("sticky", [True, False]), ("damping", [False, False])):
+    slip = PhysicsModel(obs, "gravity;ground:n=0,0,1:d=0.0:mu=0.0;walls", learn=("ground.d",), res=16)
+    assert BY_KEY["friction"].applies(slip.effects, slip.learn)
+    screened["friction"] = screen(slip, transfer(truth, th, slip), [BY_KEY["friction"]], range(1, obs.observed))[0]
+    for key, want in (("sticky", [1, False]), ("damping", [False, False]), ("friction", [2, 2])):
         j = Journal()
-        st = _refit(base, screened[key], DiscoverConfig(iterations=2), j, "round 1")
+        st = _refit(slip if key == "friction" else base, screened[key], DiscoverConfig(iterations=2), j, "round 1")
         assert [n for n, _ in j.calls][:2] == [f"round 1/{key}/start 1", f"round 1/{key}/start 2"]
         assert [sc for _, sc in j.calls][:2] == want, (key, j.calls)
         assert len(st.starts) >= 2
@@ -1797,7 +1808,27 @@ def test_a_kept_calibration_is_reused_only_from_its_own_start(tmp_path, monkeypa
     monkeypatch.setattr(J, "calibrate", lambda m, th, resume=None, **o: seen.append(dict(resume.states)) or fake(
         m, th, resume=resume))
     J.Journal(path, "key", resume=True).calibrate("round 1/plasticity/start 1", None, a)
-    assert seen[0] == {"from": a.tolist()}  # neither the state nor its seconds carried over
+    assert seen[0] == {"from": a.tolist(), "scan": 0}  # neither the state nor its seconds carried over
+    # a start scanned otherwise is another start: a wider scan of the ground is computed again, and kept as such
+    monkeypatch.setattr(J, "calibrate", fake)
+    n = len(calls)
+    j = J.Journal(path, "key", resume=True)
+    wide = j.calibrate("round 1/damping/start 2", None, a, scan=True, reach=2)
+    assert len(calls) == n + 1 and j.restarted == ["round 1/damping/start 2"]
+    assert json.loads(path.read_text())["entries"]["round 1/damping/start 2"]["scan"] == 2
+    assert J.Journal(path, "key", resume=True).calibrate("round 1/damping/start 2", None, a, scan=True,
+                                                         reach=2).loss == wide.loss  # fmt: skip
+    assert len(calls) == n + 1
+    unscanned = J.Journal(path, "key", resume=True).calibrate("round 1/damping/start 2", None, a)
+    assert len(calls) == n + 2 and unscanned.loss == wide.loss  # (the fake's loss is its start's)
+    # an entry of a file written before scans were recorded is taken as it is, unless asked for a wider scan
+    saved = json.loads(path.read_text())
+    del saved["entries"]["round 1/damping/start 2"]["scan"]
+    path.write_text(json.dumps(saved))
+    J.Journal(path, "key", resume=True).calibrate("round 1/damping/start 2", None, a, scan=True)
+    assert len(calls) == n + 2
+    J.Journal(path, "key", resume=True).calibrate("round 1/damping/start 2", None, a, scan=True, reach=2)
+    assert len(calls) == n + 3
 
 
 def test_a_candidates_screen_step_stays_within_its_range():
