@@ -45,7 +45,7 @@ def same_scan(entry: dict, scan: int) -> bool:
     """Whether the kept ``entry`` (or state) moved its start as ``scan`` says: 0 not at all, else the reach of the
     grid scan of its planes' heights (:func:`~causalgs.discover.calibrate.scanned_start`). Entries written before
     the scan was recorded carry none and are taken as they are, unless asked for a wider scan than any then."""
-    return entry.get("scan", scan if scan <= 1 else None) == scan
+    return entry.get("scanned", scan if scan <= 1 else None) == scan
 
 
 def calibration_options(spec: str, learn, cfg, start: dict | None = None) -> dict:
@@ -136,12 +136,12 @@ class Journal:
         if states is None or not same_start(states.get("from"), begin) or not same_scan(states, scan):
             states = self.partial[name] = {}
         states["from"] = begin
-        states["scan"] = scan
+        states["scanned"] = scan
         spent = float(states.get("seconds", 0.0))  # before the stop, when it goes on from a kept state
         f = calibrate(model, theta, **options, resume=Resume(states, lambda: self._keep(name, t0, spent)))
         self.entries[name] = {"theta": [float(v) for v in f.theta.detach().double()], "loss": _finite(f.loss),
                               "evaluations": int(f.evaluations), "start": float(f.start), "from": begin,
-                              "scan": scan, "seconds": round(spent + time.monotonic() - t0, 2)}  # fmt: skip
+                              "scanned": scan, "seconds": round(spent + time.monotonic() - t0, 2)}  # fmt: skip
         self._write()
         self.partial.pop(name, None)
         self._write_partial()

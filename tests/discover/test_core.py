@@ -1808,14 +1808,14 @@ def test_a_kept_calibration_is_reused_only_from_its_own_start(tmp_path, monkeypa
     monkeypatch.setattr(J, "calibrate", lambda m, th, resume=None, **o: seen.append(dict(resume.states)) or fake(
         m, th, resume=resume))
     J.Journal(path, "key", resume=True).calibrate("round 1/plasticity/start 1", None, a)
-    assert seen[0] == {"from": a.tolist(), "scan": 0}  # neither the state nor its seconds carried over
+    assert seen[0] == {"from": a.tolist(), "scanned": 0}  # neither the state nor its seconds carried over
     # a start scanned otherwise is another start: a wider scan of the ground is computed again, and kept as such
     monkeypatch.setattr(J, "calibrate", fake)
     n = len(calls)
     j = J.Journal(path, "key", resume=True)
     wide = j.calibrate("round 1/damping/start 2", None, a, scan=True, reach=2)
     assert len(calls) == n + 1 and j.restarted == ["round 1/damping/start 2"]
-    assert json.loads(path.read_text())["entries"]["round 1/damping/start 2"]["scan"] == 2
+    assert json.loads(path.read_text())["entries"]["round 1/damping/start 2"]["scanned"] == 2
     assert J.Journal(path, "key", resume=True).calibrate("round 1/damping/start 2", None, a, scan=True,
                                                          reach=2).loss == wide.loss  # fmt: skip
     assert len(calls) == n + 1
@@ -1823,7 +1823,7 @@ def test_a_kept_calibration_is_reused_only_from_its_own_start(tmp_path, monkeypa
     assert len(calls) == n + 2 and unscanned.loss == wide.loss  # (the fake's loss is its start's)
     # an entry of a file written before scans were recorded is taken as it is, unless asked for a wider scan
     saved = json.loads(path.read_text())
-    del saved["entries"]["round 1/damping/start 2"]["scan"]
+    del saved["entries"]["round 1/damping/start 2"]["scanned"]
     path.write_text(json.dumps(saved))
     J.Journal(path, "key", resume=True).calibrate("round 1/damping/start 2", None, a, scan=True)
     assert len(calls) == n + 2
