@@ -171,8 +171,8 @@ def calibrate(model: PhysicsModel, theta0: torch.Tensor, frames=None, *, iterati
     horizon is nearly convex in the throw and the forces, so the long one starts in the right basin rather than
     where parameters compensate for one another (a friction that mimics a forward push, a throw that mimics drag).
     ``scan``: start instead from the best point of a coarse grid of materials and learned effect parameters
-    (:func:`scanned_start`, its planes' heights ``reach`` units either side). ``resume``: where the calibration keeps its state as it goes and goes on from
-    (:class:`Resume`; None: nowhere)."""
+    (:func:`scanned_start`, its planes' heights ``reach`` units either side). ``resume``: where the calibration
+    keeps its state as it goes and goes on from (:class:`Resume`; None: nowhere)."""
     if method not in ("auto", "lm", "lbfgs"):
         raise CausalGSError(f"calibration method '{method}' is not one of auto, lm, lbfgs")
     if method == "auto":

@@ -232,12 +232,14 @@ def _refit(base: State, s, cfg: DiscoverConfig, journal: Journal, where: str) ->
     return st
 
 
-# Units of a plane's height (1 cm) either side of a contact candidate's starts that their scans try. On the video-level
-# friction landing (seed 0) the base without friction had raised the ground 1.9 cm (and softened the block to 13 kPa:
-# a softer block on a higher ground rests as low); both friction starts calibrated from there to 0.2184 cm² at
-# μ = 0.55, the ground 2.0 cm high, E 9.3 kPa. Scanned one unit either side, the first start stayed there; two units
-# either side, it went to E 100 kPa with the ground 1 mm low and calibrated to 0.0193 cm² at μ = 0.262 (truth 0.3),
-# E 40.0 kPa (38.3), the ground 1.3 mm low, as a start at the truth's own ground did.
+# Units of a plane's height (1 cm) either side of its starts that the scans of a candidate added to the base's own
+# contact try (friction on a frictionless ground). On the video-level friction landing (seed 0) the base without
+# friction had raised the ground 1.9 cm and softened the block to 13 kPa (a softer block on a higher ground rests as
+# low); both friction starts calibrated from there to 0.2184 cm² at μ = 0.55, the ground 2.0 cm high. Scanned one unit
+# either side, the first start stayed there and the second (the ground 1.1 cm high) reached 0.0193 cm² at μ = 0.263;
+# two units either side, the first too went to the ground 1 mm low and reached 0.0193 cm² at μ = 0.262 (truth 0.3),
+# E 40.0 kPa (38.3), as a start at the truth's own ground does (each calibrated without the warm-up; in the run, with
+# it, the first ended at 0.0491 cm² with ν at its bound and the second at 0.0193, μ = 0.263).
 CONTACT_REACH = 2
 REBASE_GAIN = 0.99  # a base recalibrated from a refit replaces the current one where it fits 1% better
 
