@@ -162,7 +162,7 @@ def jacobian(model: PhysicsModel, theta: torch.Tensor, frames, indices=None, bas
 
 
 def calibrate(model: PhysicsModel, theta0: torch.Tensor, frames=None, *, iterations: int = 25,
-              free=None, warm: float = 0.0, method: str = "auto", scan: bool = False, reach: int = 1,
+              free=None, warm: float = 0.0, method: str = "auto", scan: int = 0,
               resume: Resume | None = None) -> Fit:  # fmt: skip
     """Levenberg–Marquardt (``method="lm"``) or L-BFGS (``"lbfgs"``; ``"auto"``: Levenberg–Marquardt for at most
     ``LM_MAX_PARAMS`` free parameters) from ``theta0`` on ``frames`` (default: the fit window), at most
@@ -170,16 +170,16 @@ def calibrate(model: PhysicsModel, theta0: torch.Tensor, frames=None, *, iterati
     > 0: first fit the leading ``warm`` fraction of the frames (half the iterations), then all of them: a short
     horizon is nearly convex in the throw and the forces, so the long one starts in the right basin rather than
     where parameters compensate for one another (a friction that mimics a forward push, a throw that mimics drag).
-    ``scan``: start instead from the best point of a coarse grid of materials and learned effect parameters
-    (:func:`scanned_start`, its planes' heights ``reach`` units either side). ``resume``: where the calibration
-    keeps its state as it goes and goes on from (:class:`Resume`; None: nowhere)."""
+    ``scan`` ≥ 1 (True: 1): start instead from the best point of a coarse grid of materials and learned effect
+    parameters (:func:`scanned_start`, its planes' heights ``scan`` units either side; 0: no scan). ``resume``: where
+    the calibration keeps its state as it goes and goes on from (:class:`Resume`; None: nowhere)."""
     if method not in ("auto", "lm", "lbfgs"):
         raise CausalGSError(f"calibration method '{method}' is not one of auto, lm, lbfgs")
     if method == "auto":
         method = "lm" if (len(theta0) if free is None else len(list(free))) <= LM_MAX_PARAMS else "lbfgs"
     frames = fit_frames(model) if frames is None else list(frames)
     if scan:
-        theta0 = scanned_start(model, theta0, frames, resume=resume, reach=reach)
+        theta0 = scanned_start(model, theta0, frames, resume=resume, reach=int(scan))
     if warm > 0 and len(frames) >= 6:
         head = frames[: max(3, round(warm * len(frames)))]
         done = None if resume is None else resume.get("warm")

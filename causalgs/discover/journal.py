@@ -123,7 +123,7 @@ class Journal:
         """The calibration ``name`` (:func:`~causalgs.discover.calibrate.calibrate` of ``model`` from ``theta`` with
         ``options``): from the file when finished before, else computed and recorded at once."""
         begin = [float(v) for v in theta.detach().double()]
-        scan = int(options.get("reach", 1)) if options.get("scan") else 0
+        scan = int(options.get("scan", 0))
         e = self.entries.get(name)
         if e is not None and same_start(e.get("from"), begin) and same_scan(e, scan):
             self.reused += 1

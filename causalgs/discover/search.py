@@ -222,9 +222,9 @@ def _refit(base: State, s, cfg: DiscoverConfig, journal: Journal, where: str) ->
     added = c.replaces is None and c.driver == "contact"
     reach = CONTACT_REACH if added else 1
     fits = [journal.calibrate(f"{where}/{c.key}/start 1", model, th, iterations=cfg.iterations, warm=cfg.warm,
-                              scan=c.replaces is not None or added, reach=reach),
+                              scan=reach if c.replaces is not None or added else 0),
             journal.calibrate(f"{where}/{c.key}/start 2", model, fresh_start(model, th, c.params, cfg.starts),
-                              iterations=cfg.iterations, warm=cfg.warm, scan=added, reach=reach)]  # fmt: skip
+                              iterations=cfg.iterations, warm=cfg.warm, scan=reach if added else 0)]  # fmt: skip
     fits = unpin(journal, f"{where}/{c.key}", model, fits, cfg)
     best = min(fits, key=lambda f: f.loss)
     st = _state(model, best)

@@ -1205,8 +1205,8 @@ def test_a_structural_refit_starts_first_from_a_scan_of_its_own():
         def __init__(self):
             self.calls = []
 
-        def calibrate(self, name, model, theta0, scan=False, reach=1, **kw):
-            self.calls.append((name, scan and reach))
+        def calibrate(self, name, model, theta0, scan=0, **kw):
+            self.calls.append((name, scan))
             return Fit(theta0.clone(), 1.0, 1, 3e4)
 
     slip = PhysicsModel(obs, "gravity;ground:n=0,0,1:d=0.0:mu=0.0;walls", learn=("ground.d",), res=16)
@@ -1813,11 +1813,10 @@ def test_a_kept_calibration_is_reused_only_from_its_own_start(tmp_path, monkeypa
     monkeypatch.setattr(J, "calibrate", fake)
     n = len(calls)
     j = J.Journal(path, "key", resume=True)
-    wide = j.calibrate("round 1/damping/start 2", None, a, scan=True, reach=2)
+    wide = j.calibrate("round 1/damping/start 2", None, a, scan=2)
     assert len(calls) == n + 1 and j.restarted == ["round 1/damping/start 2"]
     assert json.loads(path.read_text())["entries"]["round 1/damping/start 2"]["scanned"] == 2
-    assert J.Journal(path, "key", resume=True).calibrate("round 1/damping/start 2", None, a, scan=True,
-                                                         reach=2).loss == wide.loss  # fmt: skip
+    assert J.Journal(path, "key", resume=True).calibrate("round 1/damping/start 2", None, a, scan=2).loss == wide.loss
     assert len(calls) == n + 1
     unscanned = J.Journal(path, "key", resume=True).calibrate("round 1/damping/start 2", None, a)
     assert len(calls) == n + 2 and unscanned.loss == wide.loss  # (the fake's loss is its start's)
@@ -1827,7 +1826,7 @@ def test_a_kept_calibration_is_reused_only_from_its_own_start(tmp_path, monkeypa
     path.write_text(json.dumps(saved))
     J.Journal(path, "key", resume=True).calibrate("round 1/damping/start 2", None, a, scan=True)
     assert len(calls) == n + 2
-    J.Journal(path, "key", resume=True).calibrate("round 1/damping/start 2", None, a, scan=True, reach=2)
+    J.Journal(path, "key", resume=True).calibrate("round 1/damping/start 2", None, a, scan=2)
     assert len(calls) == n + 3
 
 
