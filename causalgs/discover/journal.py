@@ -62,10 +62,10 @@ def calibration_options(spec: str, learn, cfg, start: dict | None = None) -> dic
 
 
 def fingerprint(options: dict, x: np.ndarray, mix: np.ndarray | None = None, lens_kind: str = "rigid",
-                bend: np.ndarray | None = None) -> str:  # fmt: skip
+                bend: np.ndarray | None = None, stretch: np.ndarray | None = None) -> str:  # fmt: skip
     """A digest of the run's options, its measurement (positions at full precision, and the lens the simulation is
-    compared through, ``Observation.mix``, ``lens_kind`` and ``bend``) and the causalgs version (a calibration of
-    another version may mean other things by the same θ)."""
+    compared through, ``Observation.mix``, ``lens_kind``, ``bend`` and ``stretch``) and the causalgs version (a
+    calibration of another version may mean other things by the same θ)."""
     from causalgs import __version__
 
     h = hashlib.sha256(json.dumps({"options": options, "version": __version__}, sort_keys=True).encode())
@@ -78,6 +78,9 @@ def fingerprint(options: dict, x: np.ndarray, mix: np.ndarray | None = None, len
         if bend is not None:
             h.update(b"bend")
             h.update(np.ascontiguousarray(bend, dtype=np.int64).tobytes())
+        if stretch is not None:
+            h.update(b"stretch")
+            h.update(np.ascontiguousarray(stretch, dtype=bool).tobytes())
     return h.hexdigest()[:16]
 
 

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from causalgs import _ti
-from causalgs.discover.observation import LENSES, Observation, noise_floor
+from causalgs.discover.observation import LENSES, Observation, affine_projection, noise_floor
 from causalgs.discover.residuals import twist_basis
 from causalgs.errors import CausalGSError
 from causalgs.sim import SimConfig, Simulator
@@ -341,15 +341,24 @@ class PhysicsModel:
         x, _, _ = simulate(self.sim, self.x0, u["v0"].to(dt), u["E"].to(dt), u["nu"].to(dt), density, times,
                            u["params"].to(dt))  # fmt: skip
         self.plan_of = (theta.detach().double().clone(), tuple(frames), list(self.sim.last_plan))
-        return self.see(x.double()) if lensed else x.double()
+        return self.see(x.double(), frames) if lensed else x.double()
 
-    def see(self, x: torch.Tensor) -> torch.Tensor:
-        """Simulated positions [F, P, 3] as the measurement sees them: through its lens where it has one
+    def see(self, x: torch.Tensor, frames=None) -> torch.Tensor:
+        """Simulated positions [F, P, 3] at the observation's ``frames`` (default: every frame after the first) as
+        the measurement sees them: through its lens where it has one
         (:func:`~causalgs.discover.observation.rigid_projection` or, for tracks that stretch each pattern,
-        :func:`~causalgs.discover.observation.affine_projection`), else as they are."""
+        :func:`~causalgs.discover.observation.affine_projection`; the latter at the frames the observation's
+        rigid tracks stretch, ``Observation.stretch``), else as they are."""
         if self.obs.mix is None:
             return x
         project = LENSES[self.obs.lens_kind]
+        args = (self.x0.double(), self._mix, self._vol)
         if self._bend is not None:  # affine tracks that also bend each body
-            return project(x, self.x0.double(), self._mix, self._vol, at=self.points0.double(), bend=self._bend)
-        return project(x, self.x0.double(), self._mix, self._vol, at=self.points0.double())
+            return project(x, *args, at=self.points0.double(), bend=self._bend)
+        out = project(x, *args, at=self.points0.double())
+        if self.obs.stretch is not None:
+            frames = range(1, len(self.obs.times)) if frames is None else frames
+            at = torch.as_tensor(np.nonzero(self.obs.stretch[list(frames)])[0])
+            if len(at):
+                out = out.index_put((at,), affine_projection(x[at], *args, at=self.points0.double()))
+        return out

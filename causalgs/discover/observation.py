@@ -21,7 +21,9 @@ blended rigid motions that fit them best (the observation operator of data assim
 can show (a bounce, a slide, a spin, drag) is compared in full; deformation within a pattern is not compared,
 because it was not measured. Tracks that also stretch each pattern (a body squashed for good by plastic flow) are
 compared through an affine lens instead (``lens_kind = "affine"``, :func:`affine_projection`): the affine motions
-that fit the simulation best.
+that fit the simulation best. Rigid tracks of an elastic body are wrong where it deforms for a moment (an impact,
+a landing): there a run's observation takes the stretching tracks and the affine lens frame by frame
+(``stretch``), and the rigid ones everywhere else.
 """
 
 from __future__ import annotations
@@ -61,6 +63,10 @@ class Observation:
     # [P] affine tracks with a bend (:class:`~causalgs.model.refine.RefineConfig` ``bend``): the body whose
     # second-order displacement moves each point, which the lens fits too (:func:`affine_projection`); None: no bend
     bend: np.ndarray | None = None
+    # [T] bool, rigid tracks only: the frames at which the tracks stretch each pattern and the simulation is compared
+    # through the affine lens instead (where the images showed the bodies deforming, as at an impact; see
+    # :func:`causalgs.discover.video.stretch_where_deforming`). None: ``lens_kind`` at every frame
+    stretch: np.ndarray | None = None
     # (m) how finely the points describe each body's extent: a face is known to ± half of it (a fitted run: the
     # voxel its particles filled the bodies at); 0: the points are the material itself (a simulation's particles)
     shape_resolution: float = 0.0
@@ -136,6 +142,15 @@ class Observation:
                 raise CausalGSError("observation: a bend ('bend') belongs to an affine lens ('mix', lens 'affine')")
             if len(self.bend) != P or not np.issubdtype(self.bend.dtype, np.integer) or (self.bend < 0).any():
                 raise CausalGSError(f"observation: 'bend' must hold {P} body numbers >= 0, one a point")
+        if self.stretch is not None:
+            self.stretch = np.asarray(self.stretch).reshape(-1)
+            if self.mix is None or self.lens_kind != "rigid":
+                raise CausalGSError("observation: stretched frames ('stretch') belong to a rigid lens ('mix', lens "
+                                    "'rigid')")  # fmt: skip
+            if len(self.stretch) != T or self.stretch.dtype != bool:
+                raise CausalGSError(f"observation: 'stretch' must hold {T} booleans, one a frame")
+            if self.stretch[0]:
+                raise CausalGSError("observation: the first frame, where every simulation starts, cannot be stretched")
         if self.drift is not None:
             self.drift = np.asarray(self.drift, dtype=np.float64).reshape(-1)
             if len(self.drift) != T or not (np.isfinite(self.drift).all() and (self.drift >= 0).all()):
@@ -188,6 +203,8 @@ class Observation:
             extra["lens_kind"] = np.array(self.lens_kind)
         if self.bend is not None:
             extra["bend"] = self.bend
+        if self.stretch is not None:
+            extra["stretch"] = self.stretch
         if self.clean is not None:
             extra["clean"] = self.clean
         if self.drift is not None:
@@ -237,6 +254,7 @@ def load_observation(path) -> Observation:
             truth=json.loads(str(d["truth_json"])) if "truth_json" in d else None, mix=d.get("mix"),
             lens_kind=str(d.get("lens_kind", "rigid")), shape_resolution=float(d.get("shape_resolution", 0.0)),
             clean=d.get("clean"), drift=d.get("drift"), bend=d.get("bend"), disagreement=d.get("disagreement"),
+            stretch=d.get("stretch"),
         )  # fmt: skip
     except CausalGSError as e:
         raise CausalGSError(f"{path}: {e}") from None

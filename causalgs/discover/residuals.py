@@ -192,7 +192,7 @@ def lens_floor(sim: np.ndarray, obs: Observation, frames) -> float:
     every body's best rigid motion is removed frame by frame (a translation and a small rotation, least squares);
     where the measurement's lens is affine (tracks that stretch each pattern, :attr:`Observation.lens_kind`), its
     best smooth deformation instead: a translation, any linear map and a second-order bend or bulge
-    (:func:`quadratic_basis`).
+    (:func:`quadratic_basis`), as at the frames where rigid tracks stretch (:attr:`Observation.stretch`).
 
     The part of a residual that no better dynamics of the bodies the lens can show could remove: measurement noise
     and the noise of the reconstructed rest shape (each point's start offset), which are independent from point to
@@ -211,7 +211,8 @@ def lens_floor(sim: np.ndarray, obs: Observation, frames) -> float:
     blends of the patterns' affine motions, so their difference is too, and removing those would leave nothing."""
     frames = list(frames)
     r = obs.x[frames] - sim
-    basis = quadratic_basis if obs.mix is not None and obs.lens_kind == "affine" else twist_basis
+    smooth = obs.mix is not None and obs.lens_kind == "affine"
+    stretched = [smooth or (obs.stretch is not None and bool(obs.stretch[f])) for f in frames]
     left, count = 0.0, 0
     for b in range(obs.bodies):
         sel = obs.body == b
@@ -219,7 +220,7 @@ def lens_floor(sim: np.ndarray, obs: Observation, frames) -> float:
         q = p - p.mean(1, keepdims=True)
         for k in range(len(frames)):
             rk = r[k, sel]
-            A = basis(q[k])
+            A = (quadratic_basis if stretched[k] else twist_basis)(q[k])
             sol, *_ = np.linalg.lstsq(A, rk.reshape(-1), rcond=None)
             e = rk.reshape(-1) - A @ sol
             left += float(e @ e)

@@ -12,6 +12,8 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import numpy as np
+
 from causalgs.discover.journal import Journal, calibration_options, fingerprint
 from causalgs.discover.observation import Observation, load_observation
 from causalgs.discover.report import write_outputs
@@ -69,13 +71,15 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
                "candidates": None if candidates is None else list(candidates),
                "tracking": ("refined" if base.get("tracking", {}).get("refined") else "kinematic") if "run" in base
                else None,
-               "lens": None if obs.mix is None else f"{obs.lens_kind} per motion pattern ({obs.mix.shape[1]})",
+               "lens": None if obs.mix is None else f"{obs.lens_kind} per motion pattern ({obs.mix.shape[1]})" + (
+                   "" if obs.stretch is None else f", stretching at {int(obs.stretch.sum())} frames where the bodies "
+                   "deform"),
                "shape_resolution_m": obs.shape_resolution, "noise_m": obs.noise,
                "config": dataclasses.asdict(cfg), "box": [list(obs.lo), list(obs.hi)]}  # fmt: skip
     if (out / "report.json").is_file() and not (out / "progress.json").is_file() and not resume:
         raise CausalGSError(f"{out} already holds a discovery report: choose another --out")
     key = fingerprint({**calibration_options(spec, learn, cfg), "box": [obs.lo, obs.hi], "noise": obs.noise}, obs.x,
-                      obs.mix, obs.lens_kind, obs.bend)  # fmt: skip
+                      obs.mix, obs.lens_kind, obs.bend, obs.stretch)  # fmt: skip
     journal = Journal(out / "progress.json", key, resume=resume)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "discover.json", options)
@@ -91,7 +95,9 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
         report["tracking"] = {**tracking, "stray_particles": base.get("stray", 0), "pixel_m": base.get("pixel_m"),
                               "lens_patterns": None if obs.mix is None else int(obs.mix.shape[1]),
                               "lens": None if obs.mix is None else obs.lens_kind,
-                              "bend_bodies": None if obs.bend is None else int(obs.bend.max()) + 1}  # fmt: skip
+                              "bend_bodies": None if obs.bend is None else int(obs.bend.max()) + 1,
+                              "stretched_frames": None if obs.stretch is None
+                              else [int(f) for f in np.nonzero(obs.stretch)[0]]}  # fmt: skip
     report["source"] = str(source)
     report["config"] = options
     if obs.truth is not None:

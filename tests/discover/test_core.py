@@ -720,6 +720,80 @@ def test_tracks_disagreement_is_where_stretching_and_rigid_tracks_part():
     assert np.abs(np.delete(d[:, 0], [5, 6])).max() < 1e-9 and np.abs(d[:, 1]).max() < 1e-9
 
 
+def test_rigid_tracks_stretch_at_the_frames_where_the_bodies_deform(tmp_path):
+    """Where a run's rigid and stretching tracks disagree by more than the noise (an impact), the observation takes
+    the stretching tracks there and marks those frames for the affine lens; elsewhere, and on an observation that
+    already stretches or has no second refinement, nothing changes. The marks are checked, saved and read back."""
+    from dataclasses import replace
+
+    from causalgs.discover.journal import fingerprint
+    from causalgs.discover.video import STRETCH_AT, stretch_where_deforming
+
+    obs = _flight(frames=10)
+    P, T = obs.points, 10
+    obs.mix, obs.noise = np.ones((P, 1)), 0.001
+    affine = obs.x + 5e-4  # their usual difference: below the noise
+    affine[4:6] += 3e-3  # an impact at frames 4 and 5
+    dis = np.zeros((T, 1))
+    dis[4:6, 0] = 0.003
+    dis[7, 0] = 0.9 * STRETCH_AT * 0.001  # just within the noise
+    rigid = replace(obs, disagreement=dis)
+    got = stretch_where_deforming(rigid, affine)
+    assert got.stretch.tolist() == [f in (4, 5) for f in range(T)]
+    assert np.array_equal(got.x[4:6], affine[4:6]) and np.array_equal(np.delete(got.x, [4, 5], 0),
+                                                                        np.delete(obs.x, [4, 5], 0))  # fmt: skip
+    assert got.noise == 0.001 and got.lens_kind == "rigid" and rigid.stretch is None
+    assert stretch_where_deforming(replace(rigid, disagreement=dis * 0.1), affine) is not None
+    assert stretch_where_deforming(replace(rigid, disagreement=dis * 0.1), affine).stretch is None
+    assert stretch_where_deforming(replace(obs, disagreement=None), affine).stretch is None
+    assert stretch_where_deforming(replace(rigid, lens_kind="affine"), affine).stretch is None
+    got.save(tmp_path / "stretch.npz")
+    assert np.array_equal(load_observation(tmp_path / "stretch.npz").stretch, got.stretch)
+    key = lambda o: fingerprint({}, o.x, o.mix, o.lens_kind, o.bend, o.stretch)  # noqa: E731
+    assert key(got) != key(replace(got, stretch=np.roll(got.stretch, 1)))
+    assert key(rigid) == fingerprint({}, obs.x, obs.mix)  # without stretched frames, the key is as before
+    for over, why in ((dict(stretch=got.stretch[:-1]), "booleans"), (dict(stretch=got.stretch.astype(int)), "booleans"),
+                      (dict(stretch=np.eye(T, dtype=bool)[0]), "first frame"),
+                      (dict(lens_kind="affine"), "rigid lens"), (dict(mix=None), "rigid lens")):  # fmt: skip
+        with pytest.raises(CausalGSError, match=why) as e:
+            replace(got, **over)
+        assert "\n" not in str(e.value)
+
+
+def test_stretched_frames_are_seen_through_the_affine_lens():
+    """A bounce seen through a rigid lens with the impact's frames stretched: the rollout at those frames is the
+    simulated material's best affine motion (:func:`affine_projection`), at the others its best rigid one, whatever
+    frames are asked for; the window's floor there removes a squash."""
+    from dataclasses import replace
+
+    from causalgs.discover.observation import affine_projection, rigid_projection
+
+    st, m, obs = _flight_and_bounce()["bounce"]
+    stretch = np.zeros(len(obs.times), dtype=bool)
+    stretch[5:9] = True
+    m.obs = replace(obs, stretch=stretch)
+    th = st.fit.theta
+    with torch.no_grad():
+        raw = m.rollout(th, lensed=False)
+        seen = m.rollout(th)
+        some, some_raw = m.rollout(th, [2, 6, 7, 11]), m.rollout(th, [2, 6, 7, 11], lensed=False)
+
+    def want(x, frames):
+        args = (x, m.x0.double(), m._mix, m._vol)
+        rigid, affine = rigid_projection(*args).numpy(), affine_projection(*args).numpy()
+        return np.where(stretch[frames, None, None], affine, rigid), rigid, affine
+
+    full, rigid, affine = want(raw, list(range(1, len(obs.times))))
+    assert np.allclose(seen.numpy(), full, atol=1e-12)
+    assert np.allclose(some.numpy(), want(some_raw, [2, 6, 7, 11])[0], atol=1e-12)
+    assert np.abs(affine[4:8] - rigid[4:8]).max() > 1e-4  # the bounce squashes the cube: the lenses differ there
+    frames = list(range(1, len(obs.times)))
+    q = obs.x[frames] - obs.x[frames].mean(1, keepdims=True)
+    squash = np.where(stretch[frames, None, None], 0.05 * q * np.array([0.5, 0.5, -1.0]), 0.0)
+    assert R.lens_floor(obs.x[frames] - squash, m.obs, frames) < 1e-9
+    assert R.lens_floor(obs.x[frames] - squash, obs, frames) > 1e-4  # unstretched, the squash is left as noise
+
+
 def test_weighing_by_the_tracks_disagreement_or_the_base_departure():
     """With an observation refined both ways, the weights' track error is the tracks' disagreement (capped at four
     times the noise, None where it stays below half of it), the same whatever the model; without it, or by "base",
