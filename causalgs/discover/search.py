@@ -947,13 +947,15 @@ WEIGH_BY = ("tracks", "base")
 def weighing(state: State, sigma: float, by: str = "tracks") -> tuple[np.ndarray | None, str]:
     """The track error every residual is weighed by (``DiscoverConfig.weigh``) and where it comes from: with ``by``
     "tracks" and an observation refined both ways, its rigid and stretching tracks' disagreement
-    (``Observation.disagreement``, "tracks"), capped and thresholded as :func:`track_error` does; otherwise the
+    (``Observation.disagreement``, "tracks"; none at the frames the stretching tracks measure,
+    ``Observation.stretch``), capped and thresholded as :func:`track_error` does; otherwise the
     base fit's departure (:func:`track_error`, "base"). None where nothing reaches half the noise."""
     if by not in WEIGH_BY:
         raise CausalGSError(f"weigh by '{by}' is not one of {', '.join(WEIGH_BY)}")
     obs = state.model.obs
     if by == "tracks" and obs.mix is not None and obs.disagreement is not None:
-        return _capped(obs.disagreement, sigma), "tracks"
+        dis = obs.disagreement  # the rigid tracks' error; where the stretching ones measure, not theirs
+        return _capped(dis if obs.stretch is None else np.where(obs.stretch[:, None], 0.0, dis), sigma), "tracks"
     return track_error(state, sigma), "base"
 
 

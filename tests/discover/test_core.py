@@ -796,8 +796,9 @@ def test_stretched_frames_are_seen_through_the_affine_lens():
 
 def test_weighing_by_the_tracks_disagreement_or_the_base_departure():
     """With an observation refined both ways, the weights' track error is the tracks' disagreement (capped at four
-    times the noise, None where it stays below half of it), the same whatever the model; without it, or by "base",
-    the base fit's departure; an unknown source is a one-line error, and so is a wrongly shaped disagreement."""
+    times the noise, None where it stays below half of it; 0 at frames measured by stretching tracks), the same
+    whatever the model; without it, or by "base", the base fit's departure; an unknown source is a one-line error,
+    and so is a wrongly shaped disagreement."""
     import dataclasses
 
     from causalgs.discover.search import track_error, weighing
@@ -811,6 +812,11 @@ def test_weighing_by_the_tracks_disagreement_or_the_base_departure():
     assert source == "tracks" and np.allclose(e[:, 0], np.minimum(d[:, 0], 4 * sigma))
     e, source = weighing(st, sigma, "base")
     assert source == "base" and np.allclose(e, track_error(st, sigma))
+    stretch = np.zeros(14, dtype=bool)
+    stretch[7] = True  # measured there by tracks that follow the squash: the rigid ones' error is not theirs
+    m.obs = dataclasses.replace(obs, disagreement=d, stretch=stretch)
+    e, source = weighing(st, sigma)
+    assert source == "tracks" and e[7, 0] == 0.0 and e[6, 0] == pytest.approx(1.5e-3)
     m.obs = dataclasses.replace(obs, disagreement=np.full((14, 1), 0.4 * sigma))
     assert weighing(st, sigma) == (None, "tracks")
     m.obs = obs
