@@ -317,6 +317,12 @@ def markdown(report: dict) -> str:
                          "that fits it best. A bounce, a slide, a spin or a drag is compared in full; a body's "
                          "deformation within a pattern (an elastic wobble) is in neither the measurement nor the "
                          "comparison.")  # fmt: skip
+                if tr.get("stretched_frames"):
+                    L.append(f"At frames {_ranges(tr['stretched_frames'])} the tracks refined with a stretch per "
+                             "pattern strayed from the rigid ones by more than the noise: the bodies deform there (an "
+                             "impact), and a rigid pose fitted to their images is off by about as much. There the "
+                             "stretching tracks are the measurement, and the simulation is compared through the "
+                             "affine motion per pattern that fits it best.")  # fmt: skip
             if tr.get("lens_choice"):
                 L.append(tr["lens_choice"])
         blind = report.get("disagreement", {}).get("blind") or []

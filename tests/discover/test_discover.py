@@ -418,6 +418,10 @@ def test_the_report_says_the_measurement_was_refined_and_what_it_gained():
     assert "same lens" not in text  # compared point by point
     rep["tracking"]["lens_patterns"] = 2
     assert "each of the run's 2 motion pattern(s) rigidly" in markdown(rep)
+    assert "stretching tracks are the measurement" not in markdown(rep)
+    rep["tracking"]["stretched_frames"] = [3, 4, 5, 9]  # where the two refinements part: the impact's frames
+    assert "At frames 3–5, 9 the tracks refined with a stretch" in markdown(rep)
+    del rep["tracking"]["stretched_frames"]
     # where the base model's bodies deform, the rigid tracks cannot follow them: said with the frames
     assert "depart from their rigid motion" not in markdown(rep)
     rep["disagreement"]["blind"] = [0.0, 0.0, 0.0004, 0.0051, 0.003, 0.0012]
