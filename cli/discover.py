@@ -83,6 +83,12 @@ def _starts(text: str) -> tuple[float, ...]:
                    "at the bodies. The halves share most of what the tracks miss: on the landings of the video "
                    "table the tracks erred 1.75-1.97x what the halves' disagreement alone says (in flight "
                    "0.9x, where the quarter pixel is more).")  # fmt: skip
+@click.option("--stretch/--no-stretch", default=False, show_default=True,
+              help="For refined tracks of a run, where --lens auto keeps the rigid ones: at every frame where the "
+                   "stretching tracks stray from them by more than the noise (the bodies deform, as at an impact, "
+                   "and a rigid pose fitted to their images is off by about as much), take the stretching tracks "
+                   "and compare the simulation there through the affine lens. Off by default until the video "
+                   "table's landings have been judged with it (README).")
 @click.option("--weigh/--no-weigh", default=False, show_default=True,
               help="Through a run's rigid lens: weigh every residual by σ/√(σ² + e²), e what the rigid tracks may "
                    "err by at that frame and body (where they cannot follow a deforming body, as at an impact), in "
@@ -101,7 +107,7 @@ def _starts(text: str) -> tuple[float, ...]:
                    "finished (progress.json) and the one it was in (calibrating.json); the options must be the "
                    "same.")  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print report.json to stdout.")
-def discover(source, out, spec, learn, candidates, max_effects, res, starts, iterations, tracking, lens, split,
+def discover(source, out, spec, learn, candidates, max_effects, res, starts, iterations, tracking, lens, split, stretch,
              weigh, weigh_by, precision, resume, as_json):  # fmt: skip
     """Find where simulation and measurement disagree, name the missing physical effect, add it, show the gap shrink.
 
@@ -164,7 +170,7 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
 
         report = run_discovery(source, out, spec=spec, learn=_names(learn, "--learn"), candidates=cands,
                                config=cfg, log=None if as_json else _console_log(), resume=resume,
-                               refine=tracking == "refined", lens=lens, split=split,
+                               refine=tracking == "refined", lens=lens, split=split, stretch=stretch,
                                progress=refining)  # fmt: skip
     if as_json:
         from causalgs.discover.report import finite
@@ -207,6 +213,9 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
 @click.option("--lens", type=click.Choice(["auto", "rigid", "affine", "bent"]), default="auto", show_default=True,
               help="Video level: the refined tracks' lens, as `causalgs discover --lens` (auto: the stretching or "
                    "bent tracks where held-out cameras ask for them).")
+@click.option("--stretch", is_flag=True,
+              help="Video level: discover as `causalgs discover --stretch` (the stretching tracks and the affine "
+                   "lens at the frames where the bodies deform, where the rigid tracks are kept).")
 @click.option("--weigh", is_flag=True,
               help="Video level: discover as `causalgs discover --weigh` (residuals weighed down where the rigid "
                    "tracks and the stretching ones refined from the same images disagree, as at an impact).")
@@ -220,7 +229,7 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
               help="Video level: run nothing; collect the rows of these tables (repeat the option; one table run in "
                    "pieces with --only and --first-seed) into --out, each row taken only where its video was "
                    "rendered as the case is defined now, a later table's row replacing an earlier one.")
-def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, jobs, rigid_tracks, lens, weigh,
+def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, jobs, rigid_tracks, lens, stretch, weigh,
                    retry_failed, level, merge):
     """Reproduce the hidden-effect table: for every effect of the catalogue, a tossed block simulated with it and
     a model without it; negative controls; an effect outside the catalogue.
@@ -255,6 +264,8 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
         raise CausalGSError("--rigid-tracks is for --level trajectory: video tracks have a lens of their own (--lens)")
     if level == "trajectory" and lens != "auto":
         raise CausalGSError("--lens is for --level video: trajectory tracks are the simulator's own (--rigid-tracks)")
+    if level == "trajectory" and stretch:
+        raise CausalGSError("--stretch is for --level video: it stretches the tracks of a run where its bodies deform")
     if level == "trajectory" and weigh:
         raise CausalGSError("--weigh is for --level video: it weighs the residuals of tracks from video")
     if level == "video":
@@ -273,7 +284,7 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
     if level == "video":
         vcfg = VideoTableConfig(seeds=seeds, first_seed=first_seed, only=names, control_seeds=control_seeds,
                                 jobs=jobs, discover=DiscoverConfig(res=res or 0, weigh=weigh),
-                                truth_grid=not (run_grid or res), lens=lens)  # fmt: skip
+                                truth_grid=not (run_grid or res), lens=lens, stretch=stretch)  # fmt: skip
         rows = run_video_table(out, vcfg, log=_console_log(), retry_failed=retry_failed)
     else:
         res = res or 20

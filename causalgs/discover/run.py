@@ -26,13 +26,13 @@ DEFAULT_SPEC = "gravity;ground:mu=0.3;walls"
 DEFAULT_LEARN = ("ground.mu",)
 
 
-def load_source(source, *, refine: bool = True, lens: str = "auto", split: bool = True,
+def load_source(source, *, refine: bool = True, lens: str = "auto", split: bool = True, stretch: bool = False,
                 progress=None) -> tuple[Observation, dict]:  # fmt: skip
     """The observation at ``source`` and the base model it implies: an ``.npz`` observation file (no base: the
     defaults), or a fitted run folder (:func:`causalgs.discover.video.observation_from_run`: the run's physics; its
     tracked motion refined frame by frame unless ``refine`` is False, with the tracks' ``lens`` ("auto", "rigid" or
-    "affine"), refined from each half of the cameras too where ``split``, ``progress(done, total)`` following
-    it). Anything else is a one-line error."""
+    "affine"), refined from each half of the cameras too where ``split``, the stretching tracks at the frames where
+    the bodies deform where ``stretch``, ``progress(done, total)`` following it). Anything else is a one-line error."""
     source = Path(source)
     if source.is_dir():
         if not (source / "config.toml").is_file() or not (source / "checkpoint.pt").is_file():
@@ -41,17 +41,18 @@ def load_source(source, *, refine: bool = True, lens: str = "auto", split: bool 
         from causalgs.discover.video import REFINE, observation_from_run
 
         return observation_from_run(source, refine=REFINE if refine else None, lens_kind=lens, split=split,
-                                    progress=progress)  # fmt: skip
+                                    stretch=stretch, progress=progress)  # fmt: skip
     return load_observation(source), {}
 
 
 def run_discovery(source, out, *, spec: str | None = None, learn=None, candidates=None,
                   config: DiscoverConfig | None = None, log=None, obs: Observation | None = None,
                   base: dict | None = None, resume: bool = False, refine: bool = True, lens: str = "auto",
-                  split: bool = True, progress=None) -> dict:  # fmt: skip
+                  split: bool = True, stretch: bool = False, progress=None) -> dict:  # fmt: skip
     """Discover on ``source`` (or the given ``obs``) with the base model ``spec``/``learn`` (None: the run's own
     physics for a run folder, else :data:`DEFAULT_SPEC` / :data:`DEFAULT_LEARN`; ``obs`` with ``base``: what
-    :func:`load_source` returned for ``source``, already loaded; ``refine``, ``lens``, ``split`` and ``progress`` as
+    :func:`load_source` returned for ``source``, already loaded; ``refine``, ``lens``, ``split``, ``stretch`` and
+    ``progress`` as
     there);
     writes ``report.json``, ``report.md``, the plots, ``discover.json`` (the options) and ``progress.json`` (the
     finished calibrations) into ``out`` and returns the report. An ``out`` that already holds a discovery run is an
@@ -61,7 +62,7 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
         Effects.from_spec(spec)  # a malformed spec is a one-line error before any work
     base = dict(base or {})
     if obs is None:
-        obs, base = load_source(source, refine=refine, lens=lens, split=split, progress=progress)
+        obs, base = load_source(source, refine=refine, lens=lens, split=split, stretch=stretch, progress=progress)
     spec = spec if spec is not None else base.get("spec", DEFAULT_SPEC)
     learn = tuple(learn) if learn is not None else tuple(base.get("learn", DEFAULT_LEARN))
     if cfg.res <= 0:  # the run's grid, else the default

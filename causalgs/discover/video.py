@@ -66,7 +66,8 @@ def _load(run_dir):
 
 def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = CAPACITY, min_share: float = STRAY_SHARE,
                          seed: int = 0, refine: RefineConfig | None = REFINE, lens_kind: str | None = "auto",
-                         split: bool = True, progress=None) -> tuple[Observation, dict]:  # fmt: skip
+                         split: bool = True, stretch: bool = False,
+                         progress=None) -> tuple[Observation, dict]:  # fmt: skip
     """The observation described in the module docstring and the run's base model: ``{"spec", "learn", "res"}``,
     with ``"tracking"`` (:func:`refined_quality`) where the motion was refined (``refine``; None measures the
     kinematic fit as it is). The tracks move every motion pattern as a whole, so the observation carries that lens
@@ -75,8 +76,9 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = C
     correction that also stretches each pattern), "auto" (both, and the one :func:`choose_lens` picks from
     held-out cameras; the kinematic fit's tracks, with ``refine`` None, are rigid) or None (compare point by
     point, rigid tracks). ``split``: also refine the tracks from each half of the cameras over the fit window and
-    credit the noise their disagreement shows (:func:`split_sigma`). ``progress(done, total)`` follows the
-    refinements, frame by frame.
+    credit the noise their disagreement shows (:func:`split_sigma`). ``stretch``: where rigid tracks are taken
+    from "auto", take the stretching ones at the frames where the bodies deform (:func:`stretch_where_deforming`).
+    ``progress(done, total)`` follows the refinements, frame by frame.
 
     Discovery simulates every particle the run simulated (up to ``max_points``; beyond, a random subset of each
     body, its particles' volumes scaled to keep the body's). A thinner set is a coarser material: the MPM resolves
@@ -185,7 +187,7 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = C
                       drift=drift, disagreement=None if xa is None else disagreement(x, xa, body))  # fmt: skip
     pixel = pixel_footprint(data.train, x[0].mean(0))
     obs.noise = max(noise_floor(obs), RESOLVE * pixel, SPLIT * split_m if split_m is not None else 0.0)
-    if xa is not None:  # rigid tracks: the stretching ones where the bodies deform (the noise stays the rigid ones')
+    if stretch and xa is not None:  # rigid tracks: the stretching ones where the bodies deform (the rigid noise)
         obs = stretch_where_deforming(obs, xa)
     base = {"spec": eff.spec(), "learn": tuple(cfg.learn), "res": int(cfg.res), "run": str(run_dir),
             "stray": int(stray.sum()), "pixel_m": pixel}  # fmt: skip

@@ -127,6 +127,7 @@ class VideoTableConfig:
     # module docstring. It replaces ``discover.res``.
     truth_grid: bool = True
     lens: str = "auto"  # the refined tracks' lens (``causalgs discover --lens``): auto, rigid, affine or bent
+    stretch: bool = False  # stretching tracks where the bodies deform (``causalgs discover --stretch``)
 
 
 def plan(cfg: VideoTableConfig) -> list[tuple[str, int]]:
@@ -146,14 +147,16 @@ def _run_fit(*args, **kwargs):
     return fit(*args, **kwargs)
 
 
-def _discover(*args, grid=None, lens: str = "auto", **kwargs) -> tuple[dict, object, object]:
+def _discover(*args, grid=None, lens: str = "auto", stretch: bool = False, **kwargs) -> tuple[dict, object, object]:
     """(report, the run's observation, its kinematic fit's observation) of ``causalgs discover`` on a run: the
     measurement discovery used (the refined tracks) and the one it would have used without the refinement, both for
     the table's tracking error. ``grid``: (lo, hi, res), the box and cells discovery simulates on (None: the run's);
-    ``lens``: the refined tracks' lens (:func:`causalgs.discover.run.load_source`)."""
+    ``lens``, ``stretch``: the refined tracks' lens and where they stretch
+    (:func:`causalgs.discover.run.load_source`)."""
     from causalgs.discover.run import load_source, run_discovery
 
-    obs, base = load_source(args[0], lens=lens)  # read once, for discovery and for the table's tracking error
+    # read once, for discovery and for the table's tracking error
+    obs, base = load_source(args[0], lens=lens, stretch=stretch)
     plain, _ = load_source(args[0], refine=False)
     if grid is not None:
         obs.lo, obs.hi = (tuple(float(v) for v in b) for b in grid[:2])
@@ -257,7 +260,7 @@ def run_one(case_name: str, seed: int, cfg: VideoTableConfig, out: Path, log=Non
         log(f"{case.name}, seed {seed}: discovering")
         grid = truth_grid(case, seed, cfg) if cfg.truth_grid else None
         report, obs, plain = _discover(run, disc, config=cfg.discover, log=log, resume=True, grid=grid,
-                                       lens=cfg.lens)  # fmt: skip
+                                       lens=cfg.lens, stretch=cfg.stretch)  # fmt: skip
     except CausalGSError as e:  # one failing case is a row of the table, not the end of it
         return {**_failed(case, seed, str(e), time.monotonic() - t0), "fit_seconds": None}
     report["truth_error"] = prediction_error(disc, data)

@@ -148,6 +148,7 @@ def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_
         (["discover-table", "--out", str(out), "--level", "video", "--rigid-tracks"], "is for --level trajectory"),
         (["discover-table", "--out", str(out), "--lens", "affine"], "is for --level video"),
         (["discover-table", "--out", str(out), "--weigh"], "--weigh is for --level video"),
+        (["discover-table", "--out", str(out), "--stretch"], "--stretch is for --level video"),
     ]
     for argv, msg in bad:
         r = CliRunner().invoke(cli, argv)
@@ -157,7 +158,8 @@ def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_
 
 
 def test_discover_passes_split_and_lens_to_the_measurement(tmp_path, monkeypatch):
-    """``--split/--no-split`` and ``--lens`` reach the measurement of a run (load_source, through run_discovery)."""
+    """``--split/--no-split``, ``--lens`` and ``--stretch`` reach the measurement of a run (load_source, through
+    run_discovery)."""
     import causalgs.discover.run as R
 
     seen = []
@@ -167,10 +169,11 @@ def test_discover_passes_split_and_lens_to_the_measurement(tmp_path, monkeypatch
         return _fake_report(None)
 
     monkeypatch.setattr(R, "run_discovery", fake)
-    for extra, split, lens in (([], True, "auto"), (["--no-split", "--lens", "affine"], False, "affine")):
+    for extra, split, lens, stretch in (([], True, "auto", False), (["--no-split", "--lens", "affine"], False, "affine",
+                                                                    False), (["--stretch"], True, "auto", True)):
         r = CliRunner().invoke(cli, ["discover", str(tmp_path / "obs.npz"), "--out", str(tmp_path / "d"), *extra])
         assert r.exit_code == 0, r.output
-        assert seen[-1]["split"] is split and seen[-1]["lens"] == lens
+        assert seen[-1]["split"] is split and seen[-1]["lens"] == lens and seen[-1]["stretch"] is stretch
 
 
 def _fake_report(effect: str | None, value: float = 0.0, verdict: str | None = None) -> dict:

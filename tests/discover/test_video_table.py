@@ -93,8 +93,8 @@ def _recorders(monkeypatch, calls, *, fail=()):
             raise KeyboardInterrupt  # the fit stops half-way: a checkpoint, no finished run.json
         (run / "run.json").write_text(json.dumps({"status": "done", "total_seconds": 700.0}))
 
-    def discover(run, out, *, config, log, resume, grid, lens):
-        calls.append(("discover", resume) if lens == "auto" else ("discover", resume, lens))
+    def discover(run, out, *, config, log, resume, grid, lens, stretch):
+        calls.append(("discover", resume) + ((lens,) if lens != "auto" else ()) + (("stretch",) if stretch else ()))
         assert config.res == 0  # each run's own grid, unless the truth's is given (the default)
         assert grid == ((-0.5, -0.5, -0.1), (0.5, 0.5, 0.9), 43)  # the truth's: the synth box, its reference cells
         if "attractor" in str(run):
@@ -137,17 +137,17 @@ def test_the_table_resumes_each_stage_and_records_failures(tmp_path, monkeypatch
     V.run_video_table(tmp_path, cfg)  # every row is there: nothing runs again
     assert len(calls) == n
     # a new seed of the same case reuses nothing of seed 0, and a stopped fit goes on from its checkpoint
-    # (the tracks through the lens the table is told)
-    cfg1 = V.VideoTableConfig(only=("linear_drag",), first_seed=1, lens="affine")
+    # (the tracks through the lens the table is told, stretched where told)
+    cfg1 = V.VideoTableConfig(only=("linear_drag",), first_seed=1, lens="affine", stretch=True)
     (tmp_path / "table.json").unlink()
     rows = V.run_video_table(tmp_path, cfg1)
     assert calls[n:] == [("synth", V.BY_NAME["linear_drag"].scene), ("fit", str(tmp_path / "linear-drag-s1" / "run")),
-                         ("discover", True, "affine")]  # fmt: skip
+                         ("discover", True, "affine", "stretch")]  # fmt: skip
     # a row lost with its table: the finished dataset and run are kept, only discovery runs (and resumes)
     (tmp_path / "table.json").unlink()
     m = len(calls)
     V.run_video_table(tmp_path, cfg1)
-    assert calls[m:] == [("discover", True, "affine")]
+    assert calls[m:] == [("discover", True, "affine", "stretch")]
 
 
 def test_a_stopped_fit_resumes_and_other_tables_are_refused(tmp_path, monkeypatch):
