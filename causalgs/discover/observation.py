@@ -22,8 +22,8 @@ can show (a bounce, a slide, a spin, drag) is compared in full; deformation with
 because it was not measured. Tracks that also stretch each pattern (a body squashed for good by plastic flow) are
 compared through an affine lens instead (``lens_kind = "affine"``, :func:`affine_projection`): the affine motions
 that fit the simulation best. Rigid tracks of an elastic body are wrong where it deforms for a moment (an impact,
-a landing): there a run's observation takes the stretching tracks and the affine lens frame by frame
-(``stretch``), and the rigid ones everywhere else.
+a landing): there a run's observation may take the stretching tracks and the affine lens frame by frame
+(``stretch``; ``causalgs discover --stretch``), and the rigid ones everywhere else.
 """
 
 from __future__ import annotations

@@ -52,8 +52,7 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
     """Discover on ``source`` (or the given ``obs``) with the base model ``spec``/``learn`` (None: the run's own
     physics for a run folder, else :data:`DEFAULT_SPEC` / :data:`DEFAULT_LEARN`; ``obs`` with ``base``: what
     :func:`load_source` returned for ``source``, already loaded; ``refine``, ``lens``, ``split``, ``stretch`` and
-    ``progress`` as
-    there);
+    ``progress`` as there);
     writes ``report.json``, ``report.md``, the plots, ``discover.json`` (the options) and ``progress.json`` (the
     finished calibrations) into ``out`` and returns the report. An ``out`` that already holds a discovery run is an
     error unless ``resume``, which continues it (same options and measurement) from its finished calibrations."""
