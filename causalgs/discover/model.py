@@ -358,7 +358,7 @@ class PhysicsModel:
         out = project(x, *args, at=self.points0.double())
         if self.obs.stretch is not None:
             frames = range(1, len(self.obs.times)) if frames is None else frames
-            at = torch.as_tensor(np.nonzero(self.obs.stretch[list(frames)])[0])
-            if len(at):
-                out = out.index_put((at,), affine_projection(x[at], *args, at=self.points0.double()))
+            rows = torch.as_tensor(np.nonzero(self.obs.stretch[list(frames)])[0])
+            if len(rows):
+                out = out.index_put((rows,), affine_projection(x[rows], *args, at=self.points0.double()))
         return out
