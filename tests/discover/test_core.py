@@ -1013,6 +1013,53 @@ def _thrown_cube(spec: str, centre, velocity, observed: int, frames: int = 16, v
     return obs, truth, th
 
 
+def test_a_fit_in_contact_with_its_poisson_ratio_astray_is_tried_again_from_the_default_ratio():
+    """In contact a Poisson ratio trades against the contact's other parameters and a calibration stops in a basin
+    well inside its range: the best fit of a bounce whose ratio is further than NU_NEAR from NU_RESTART is calibrated
+    once more from it with the ratio reset; a ratio near it, or any ratio in flight, is left alone. After
+    :func:`unpin` has moved a ratio from its bound to the middle, nothing more is tried."""
+    from causalgs.discover.calibrate import Fit
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.search import NU_NEAR, NU_RESTART, DiscoverConfig, restart_nu, retry
+
+    class Journal:
+        def __init__(self):
+            self.calls = []
+
+        def calibrate(self, name, model, theta, **options):
+            self.calls.append((name, theta.clone()))
+            return Fit(theta, 0.5, 1, 3e4)
+
+    spec = "gravity;ground:mu=0.3;walls"
+    bounce, _, _ = _thrown_cube(spec, (0.0, 0.0, 0.1), (0.4, 0.0, -1.0), 10, frames=14)
+    flight, _, _ = _thrown_cube(spec, (0.0, 0.0, 0.5), (0.4, -0.2, 1.0), 10, frames=14)
+    m = PhysicsModel(bounce, spec, ("ground.mu",), res=16)
+    assert m.flight_frames() < bounce.observed  # the premise: the bounce touches the ground within the window
+    nu = m.index("cube.nu")
+    cfg = DiscoverConfig()
+    astray = m.initial(E=3e4, nu=0.42)
+    other = Fit(m.initial(E=1e5, nu=0.42), 2.0, 1, 1e5)
+    j = Journal()
+    fits = restart_nu(j, "base", m, [Fit(astray, 1.0, 1, 3e4), other], cfg)
+    assert len(fits) == 3 and min(fits, key=lambda f: f.loss).loss == 0.5
+    (name, theta), = j.calls
+    assert name == "base/ν restart" and math.isclose(m.values(theta)["cube.nu"], NU_RESTART, rel_tol=1e-6)
+    keep = [i for i in range(len(theta)) if i != nu]
+    assert torch.equal(theta[keep], astray[keep])  # from the best fit, not the other start
+    near = [Fit(m.initial(E=3e4, nu=NU_RESTART + 0.9 * NU_NEAR), 1.0, 1, 3e4)]
+    assert restart_nu(j, "base", m, near, cfg) == near and len(j.calls) == 1
+    m_flight = PhysicsModel(flight, spec, ("ground.mu",), res=16)
+    assert m_flight.flight_frames() >= flight.observed
+    far = [Fit(m_flight.initial(E=3e4, nu=0.42), 1.0, 1, 3e4)]
+    assert restart_nu(j, "base", m_flight, far, cfg) == far and len(j.calls) == 1
+    j = Journal()
+    retry(j, "round 1/friction", m, [Fit(m.initial(E=3e4, nu=0.449999), 1.0, 1, 3e4)], cfg)
+    assert [n for n, _ in j.calls] == ["round 1/friction/unpinned"]  # unpinned to 0.275: near enough
+    j = Journal()
+    retry(j, "round 1/friction", m, [Fit(m.initial(E=m.E_range[1], nu=0.42), 1.0, 1, 3e4)], cfg)
+    assert [n for n, _ in j.calls] == ["round 1/friction/unpinned", "round 1/friction/ν restart"]
+
+
 def test_a_scan_starts_a_bounce_at_the_best_point_of_its_grid(monkeypatch):
     """From a stiff, nearly incompressible start (the truth's throw) with the friction and the ground a unit off,
     the scan rolls out every point of its grid once and returns the best: the truth's own point (30 kPa, ν 0.3,
