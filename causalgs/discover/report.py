@@ -181,7 +181,7 @@ def markdown(report: dict) -> str:
                        if share is not None and share < SIGNATURE_WEAK else ""))  # fmt: skip
             L += [f"- **{d['law']}**", "  - evidence: held-out RMS "
                   f"−{100 * (1 - math.sqrt(max(0.0, 1 - ev['future_drop']))):.0f}%; ΔBIC {ev['delta_bic']:+.1f}; "
-                  + "".join(f"{p} at {z:.1f} SE; " for p, z in ev["z"].items()) + hint]  # fmt: skip
+                  + "".join(f"{p} at {z:.1f} SE{_all(ev, p)}; " for p, z in ev["z"].items()) + hint]  # fmt: skip
             src = d.get("interval_sources") or {}
             rest = src.get("se_rest_shape") or {}
             track = src.get("se_tracking") or {}
@@ -434,6 +434,13 @@ def _ranges(frames) -> str:
             out.append(str(start) if start == f else f"{start}–{f}")
             start = None
     return ", ".join(out)
+
+
+def _all(ev: dict, p: str) -> str:
+    """`` (x of every source)`` where the evidence has a z over every source of error that differs from the
+    bootstrap's (the tracks' and the shape's errors), else nothing."""
+    z_all = (ev.get("z_all") or {}).get(p)
+    return "" if z_all is None or math.isclose(z_all, ev["z"][p]) else f" ({z_all:.1f} of every source)"
 
 
 def _pct(v) -> str:

@@ -781,8 +781,8 @@ def _uncertainty(state: State, params, cfg: DiscoverConfig, rest_sigma: float = 
         se_z = float(noise_samples.std())
         off = 0.0 if knob.lower is not None or knob.offset == 0.0 else knob.offset
         out[p] = {"value": vals[p], "se": se, "interval": [float(lo), float(hi)],
-                  "z": z_score(vals[p], off, se_z), "samples": noise_samples - vals[p],
-                  **extra}  # fmt: skip
+                  "z": z_score(vals[p], off, se_z), "z_all": z_score(vals[p], off, se),
+                  "samples": noise_samples - vals[p], "samples_all": samples - vals[p], **extra}  # fmt: skip
     return out
 
 
@@ -810,27 +810,29 @@ def widen(unc: dict, state: State, n_eff: int) -> dict:
 
 def _public(unc: dict) -> dict:
     """The uncertainty entries without their bootstrap samples (for the report)."""
-    return {p: {k: v for k, v in u.items() if k != "samples"} for p, u in unc.items()}
+    return {p: {k: v for k, v in u.items() if k not in ("samples", "samples_all")} for p, u in unc.items()}
 
 
-def significance(unc: dict) -> dict[str, float]:
+def significance(unc: dict, every_source: bool = False) -> dict[str, float]:
     """z per *parameter* of the candidate: a scalar's own z; for a vector (``force.b[0..2]``) the size of the
     estimate over the bootstrap spread along its direction, so that a push along x is significant although its y
-    and z components are (rightly) zero."""
+    and z components are (rightly) zero. ``every_source``: over the spread of the residuals' bootstrap, the
+    bodies' extent and the tracks' own error together (the reported interval's), not the bootstrap's alone."""
+    z_key, samples_key = ("z_all", "samples_all") if every_source else ("z", "samples")
     groups: dict[str, list[str]] = {}
     for p in unc:
         groups.setdefault(p.split("[")[0], []).append(p)
     out = {}
     for name, members in groups.items():
         if len(members) == 1:
-            out[members[0]] = unc[members[0]]["z"]
+            out[members[0]] = unc[members[0]][z_key]
             continue
         v = np.array([unc[p]["value"] for p in members])
         norm = float(np.linalg.norm(v))
         if norm == 0.0:
             out[name] = 0.0
             continue
-        along = np.stack([unc[p]["samples"] for p in members], axis=1) @ (v / norm)
+        along = np.stack([unc[p][samples_key] for p in members], axis=1) @ (v / norm)
         spread = float(along.std())
         out[name] = norm / spread if spread > 0 else 0.0
     return out
@@ -1151,12 +1153,12 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         passed = []
         for c, st in refits:
             unc = _uncertainty(st, c.params, cfg, floor=floor_coord)
-            z = significance(unc)
+            z, z_all = significance(unc), significance(unc, every_source=True)
             if c.replaces is not None:  # structural: the plane offset is not a new parameter of interest
-                z = {}
+                z = z_all = {}
             v = judge(base_train=current.train, base_future=current.future, train=st.train, future=st.future,
                       best_train=best_train, k_new=len(c.params), n_eff=n_eff,
-                      k_base=len(current.model.knobs), z=z, cfg=cfg.gate,
+                      k_base=len(current.model.knobs), z=z, z_all=z_all, cfg=cfg.gate,
                       noise=(floor_coord / UNIT) ** 2, window_noise=window_floor(st, floor_coord),
                       future_noise=held_out_floor(st, floor_coord),
                       pinned=st.model.pinned(st.fit.theta, c.params))  # fmt: skip
@@ -1214,7 +1216,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
                                  "starts_within": min(unc[p]["starts_within"] for p in c.params)},
             "evidence": {"signature": c.driver, "signature_share": sig.get(c.driver),
                          "future_drop": v.checks["future_drop"], "delta_bic": v.checks["delta_bic"],
-                         "z": significance(unc)},
+                         "z": significance(unc), "z_all": significance(unc, every_source=True)},
             "runners_up": [{"effect": o.key, "passed": scores[o.key]["passed"],
                             "future_mse_cm2": scores[o.key]["future_mse_cm2"],
                             "delta_bic": scores[o.key]["checks"]["delta_bic"],

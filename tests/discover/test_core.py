@@ -923,6 +923,18 @@ def test_gate_statistics():
     weak = judge(base_train=4.0, base_future=9.0, train=1.0, future=2.0, best_train=1.0, k_new=1, n_eff=300,
                  k_base=8, z={"c": 1.0}, cfg=cfg)  # fmt: skip
     assert not weak.passed and "not significant" in weak.reasons[0]
+    # Significant against the bootstrap but not against every source of error (the tracks', the shape's): its 95%
+    # interval holds the off value, and the effect is not named; 1.96 errors from it, it is.
+    loose = judge(base_train=4.0, base_future=9.0, train=1.0, future=2.0, best_train=1.0, k_new=1, n_eff=300,
+                  k_base=8, z={"c": 5.0}, z_all={"c": 1.7}, cfg=cfg)  # fmt: skip
+    assert not loose.passed and loose.reasons == ["its interval from every source of error holds the off value: "
+                                                  "c (1.7 SE)"]  # fmt: skip
+    assert loose.checks["z_all"] == {"c": 1.7}
+    assert judge(base_train=4.0, base_future=9.0, train=1.0, future=2.0, best_train=1.0, k_new=1, n_eff=300,
+                 k_base=8, z={"c": 5.0}, z_all={"c": 1.97}, cfg=cfg).passed  # fmt: skip
+    both = judge(base_train=4.0, base_future=9.0, train=1.0, future=2.0, best_train=1.0, k_new=1, n_eff=300,
+                 k_base=8, z={"c": 1.0}, z_all={"c": 0.5}, cfg=cfg)  # fmt: skip
+    assert both.reasons == ["not significant: c (1.0 SE)"]  # said once
     # Below the noise floor, a better fit of the window by another refit does not turn this one away ...
     near = dict(base_train=4.0, base_future=9.0, future=2.0, k_new=1, n_eff=300, k_base=8, z={"c": 8.0}, cfg=cfg)
     assert not judge(train=1.4, best_train=1.0, **near).passed  # 1.18× the best, no floor given
@@ -1178,13 +1190,20 @@ def test_a_vector_parameter_is_judged_as_a_whole():
 
     rng = np.random.default_rng(0)
 
-    def entry(value, sd):
+    def entry(value, sd, sd_all=None):
         s = sd * rng.standard_normal(400)
-        return {"value": value, "z": abs(value) / sd, "samples": s}
+        s_all = s if sd_all is None else sd_all * rng.standard_normal(400)
+        return {"value": value, "z": abs(value) / sd, "samples": s, "z_all": abs(value) / (sd_all or sd),
+                "samples_all": s_all}  # fmt: skip
 
     push = {"force.b[0]": entry(0.8, 0.01), "force.b[1]": entry(0.001, 0.01), "force.b[2]": entry(-0.002, 0.01)}
     z = significance(push)
     assert set(z) == {"force.b"} and z["force.b"] > 50
+    assert significance(push, every_source=True)["force.b"] == pytest.approx(z["force.b"])
+    # against the bootstrap alone a small push along x stands out; against the tracks' error as well it does not
+    drift = {"force.b[0]": entry(-0.09, 0.018, 0.055), "force.b[1]": entry(-0.006, 0.005, 0.016),
+             "force.b[2]": entry(0.005, 0.034, 0.068)}  # fmt: skip
+    assert significance(drift)["force.b"] > 3 and significance(drift, every_source=True)["force.b"] < 1.96
     lost = {"force.b[0]": entry(0.01, 0.05), "force.b[1]": entry(0.0, 0.05), "force.b[2]": entry(0.01, 0.05)}
     assert significance(lost)["force.b"] < 3
     assert significance({"linear_drag.c": entry(0.6, 0.02)}) == {"linear_drag.c": pytest.approx(30.0)}

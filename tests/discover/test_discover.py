@@ -354,6 +354,11 @@ def test_the_report_says_how_each_other_passer_was_told_apart():
     assert "(the smoothed accelerations do not show it; the refit does)" in text
     d["evidence"]["signature_share"] = 0.9
     assert "explains 90% of the residual acceleration\n" in markdown(rep)
+    # where the tracks' and the shape's errors widen the spread, the z over every source is said too
+    d["evidence"]["z_all"] = {"linear_drag.c": 30.2}
+    assert "linear_drag.c at 30.2 SE; its" in markdown(rep)
+    d["evidence"]["z_all"] = {"linear_drag.c": 6.1}
+    assert "linear_drag.c at 30.2 SE (6.1 of every source); its" in markdown(rep)
     assert "also passed, told apart on the held-out frames: `force`" in text
     assert "also passed, as good on the held-out frames, told apart by BIC on the fit window: `quadratic_drag`" in text
     assert "damping" not in text
