@@ -142,6 +142,20 @@ def test_a_viscosity_is_bounded_where_its_substep_would_outrun_the_elastic_one()
     assert m.pinned(m.initial(E=3e4, nu=0.3)) == {}
 
 
+class _NamingJournal:
+    """A journal that records the calibrations asked of it (name, start θ) and answers each with its start at a
+    loss of 0.5."""
+
+    def __init__(self):
+        self.calls = []
+
+    def calibrate(self, name, model, theta, **options):
+        from causalgs.discover.calibrate import Fit
+
+        self.calls.append((name, theta.clone()))
+        return Fit(theta, 0.5, 1, 3e4)
+
+
 def test_a_calibration_that_ends_at_a_bound_is_tried_again_from_the_middle_of_the_range():
     """A sigmoid's slope vanishes at its ends, so a parameter pushed to a bound stays there: the best fit holding a
     bounded parameter there is calibrated once more from the middle of its range, and both are kept."""
@@ -154,15 +168,7 @@ def test_a_calibration_that_ends_at_a_bound_is_tried_again_from_the_middle_of_th
     m = PhysicsModel(_flight(), "gravity;damping:eta=30;walls", ("damping.eta",), res=16)
     nu = m.index(f"{m.obs.names[0]}.nu")
 
-    class Journal:
-        def __init__(self):
-            self.calls = []
-
-        def calibrate(self, name, model, theta, **options):
-            self.calls.append((name, theta.clone()))
-            return Fit(theta, 0.5, 1, 3e4)
-
-    j = Journal()
+    j = _NamingJournal()
     free = [Fit(m.initial(E=3e4, nu=0.3), 1.0, 1, 3e4)]
     assert unpin(j, "round 1/damping", m, free, DiscoverConfig()) == free and not j.calls
     stuck = m.initial(E=3e4, nu=0.449999)
@@ -1034,14 +1040,6 @@ def test_a_fit_in_contact_with_its_poisson_ratio_astray_is_tried_again_from_the_
     from causalgs.discover.model import PhysicsModel
     from causalgs.discover.search import NU_NEAR, NU_RESTART, DiscoverConfig, restart_nu, retry
 
-    class Journal:
-        def __init__(self):
-            self.calls = []
-
-        def calibrate(self, name, model, theta, **options):
-            self.calls.append((name, theta.clone()))
-            return Fit(theta, 0.5, 1, 3e4)
-
     spec = "gravity;ground:mu=0.3;walls"
     bounce, _, _ = _thrown_cube(spec, (0.0, 0.0, 0.1), (0.4, 0.0, -1.0), 10, frames=14)
     flight, _, _ = _thrown_cube(spec, (0.0, 0.0, 0.5), (0.4, -0.2, 1.0), 10, frames=14)
@@ -1051,7 +1049,7 @@ def test_a_fit_in_contact_with_its_poisson_ratio_astray_is_tried_again_from_the_
     cfg = DiscoverConfig()
     astray = m.initial(E=3e4, nu=0.42)
     other = Fit(m.initial(E=1e5, nu=0.42), 2.0, 1, 1e5)
-    j = Journal()
+    j = _NamingJournal()
     fits = restart_nu(j, "base", m, [Fit(astray, 1.0, 1, 3e4), other], cfg)
     assert len(fits) == 3 and min(fits, key=lambda f: f.loss).loss == 0.5
     (name, theta), = j.calls
@@ -1064,10 +1062,10 @@ def test_a_fit_in_contact_with_its_poisson_ratio_astray_is_tried_again_from_the_
     assert m_flight.flight_frames() >= flight.observed
     far = [Fit(m_flight.initial(E=3e4, nu=0.42), 1.0, 1, 3e4)]
     assert restart_nu(j, "base", m_flight, far, cfg) == far and len(j.calls) == 1
-    j = Journal()
+    j = _NamingJournal()
     retry(j, "round 1/friction", m, [Fit(m.initial(E=3e4, nu=0.449999), 1.0, 1, 3e4)], cfg)
     assert [n for n, _ in j.calls] == ["round 1/friction/unpinned"]  # unpinned to 0.275: near enough
-    j = Journal()
+    j = _NamingJournal()
     retry(j, "round 1/friction", m, [Fit(m.initial(E=m.E_range[1], nu=0.42), 1.0, 1, 3e4)], cfg)
     assert [n for n, _ in j.calls] == ["round 1/friction/unpinned", "round 1/friction/ν restart"]
 
