@@ -103,6 +103,7 @@ def judge(*, base_train: float, base_future: float, train: float, future: float,
     the same unit (None: not checked); ``future_noise``: what a correct model would miss the held-out frames by,
     likewise (None: ``noise``); ``window_noise``: what a correct model would fit the window by, likewise (None:
     ``noise``); ``pinned``: new parameter → "upper"/"lower", those held at a bound."""
+    z_all = z if z_all is None else z_all
     drop = 1.0 - future / max(base_future, 1e-300)
     d_bic = bic(train, n_eff, k_base + k_new) - bic(base_train, n_eff, k_base)
     reached = max(best_train, noise) if noise is not None else best_train
@@ -117,7 +118,7 @@ def judge(*, base_train: float, base_future: float, train: float, future: float,
         "future_drop": drop,
         "delta_bic": d_bic,
         "z": z,
-        "z_all": z if z_all is None else z_all,
+        "z_all": z_all,
         "train_rms_ratio_to_best": math.sqrt(train / max(best_train, 1e-300)),
         "train_rms_ratio_to_noise": None if noise is None else math.sqrt(train / max(noise, 1e-300)),
         "train_rms_ratio_to_window_floor": None if window_noise is None else
@@ -140,7 +141,6 @@ def judge(*, base_train: float, base_future: float, train: float, future: float,
     weak = [p for p, v in z.items() if not v >= cfg.sigmas and p not in pinned]
     if weak:
         reasons.append(f"not significant: {', '.join(f'{p} ({z[p]:.1f} SE)' for p in weak)}")
-    z_all = z if z_all is None else z_all
     loose = [p for p, v in z_all.items() if not v >= cfg.every_sigmas and p not in pinned and p not in weak]
     if loose:
         reasons.append("its interval from every source of error holds the off value: "

@@ -316,8 +316,8 @@ def restart_nu(journal: Journal, name: str, model: PhysicsModel, fits: list[Fit]
     refit went from 0.0271 cm² (ν 0.43, μ 0.326) to 0.0194 (ν 0.31, μ 0.322), and the landing control's base from
     0.0266 cm² (ν 0.42) to 0.0159 (ν 0.30). In flight a ratio moves next to nothing, and no restart is tried."""
     best = min(fits, key=lambda f: f.loss)
-    far = [i for i, k in enumerate(model.knobs) if k.kind == "nu"
-           and abs(model.values(best.theta)[k.name] - NU_RESTART) > NU_NEAR]  # fmt: skip
+    values = model.values(best.theta)
+    far = [i for i, k in enumerate(model.knobs) if k.kind == "nu" and abs(values[k.name] - NU_RESTART) > NU_NEAR]
     if not far or model.flight_frames() >= model.obs.observed:
         return fits
     th = best.theta.clone()
