@@ -1016,6 +1016,7 @@ def test_the_ground_term_keeps_stretching_tracks_out_of_the_ground(fitted, tmp_p
     from causalgs.discover.video import STRETCH_GROUND, lens_refinement
     from causalgs.model.fit import load_model
     from causalgs.model.refine import RefineConfig, _key, below, refine_tracks, visible_floor
+    from causalgs.model.scene import floor_level
 
     m, data, tl = load_model(fitted)
     n = tl.train_frames
@@ -1056,6 +1057,16 @@ def test_the_ground_term_keeps_stretching_tracks_out_of_the_ground(fitted, tmp_p
     nrm, level = visible_floor(scene(room, floor, body, moving=len(body)))
     assert np.array_equal(nrm, (0, 0, 1)) and level == pytest.approx(0.02, abs=0.002)
     assert visible_floor(scene(room, body, moving=len(body))) is None
+    # a body that landed and stayed: the fit moved a patch of floor with it, so the lowest moving Gaussians are the
+    # floor's own and the heights up to 2 cm above them hold too few slabs for the floor, split by a slab's edge, to
+    # stand out; the floor under the moving Gaussians' median start is found instead
+    under = np.r_[-0.08, rng.uniform(-0.08, 0.015, 199)]  # static Gaussians below the floor's surface
+    split = np.c_[rng.uniform(-0.5, 0.5, (400, 2)), 0.02 + rng.normal(0, 0.002, 400)]
+    patch = np.c_[rng.uniform(-0.1, 0.1, (40, 2)), 0.02 + rng.normal(0, 0.001, 40)]
+    z_static = torch.from_numpy(np.r_[under, split[:, 2]])
+    assert floor_level(z_static, float(np.quantile(patch[:, 2], 0.001)), 1.0) is None  # the first search alone
+    nrm, level = visible_floor(scene(np.c_[np.zeros((200, 2)), under], split, patch, body, moving=len(body) + 40))
+    assert level == pytest.approx(0.02, abs=0.003)
 
 
 def test_the_drift_profile_follows_how_far_apart_the_halves_land():
