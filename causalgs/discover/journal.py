@@ -91,7 +91,9 @@ class Journal:
         self.path = None if path is None else Path(path)
         self.key = key
         self.entries: dict[str, dict] = {}
+        self.screens: dict[str, dict] = {}  # finished screens by round name: their start θ, candidates and rows
         self.reused = 0
+        self.screens_reused = 0
         self.restarted: list[str] = []  # names whose kept result began from another start: computed again
         self.partial: dict[str, dict] = {}  # the calibration under way: its name → its states (Resume)
         if self.path is None:
@@ -107,6 +109,7 @@ class Journal:
                 raise CausalGSError(f"{self.path}: made with other options or another measurement; move "
                                     f"{self.path.parent} away (or choose another --out) to start afresh")  # fmt: skip
             self.entries = dict(saved["entries"])
+            self.screens = dict(saved.get("screens", {}))  # files written before screens were kept have none
         if self._partial_path.is_file() and resume:
             try:
                 saved = read_json(self._partial_path, "calibration in progress")
@@ -125,7 +128,7 @@ class Journal:
     def calibrate(self, name: str, model, theta: torch.Tensor, **options) -> Fit:
         """The calibration ``name`` (:func:`~causalgs.discover.calibrate.calibrate` of ``model`` from ``theta`` with
         ``options``): from the file when finished before, else computed and recorded at once."""
-        begin = [float(v) for v in theta.detach().double()]
+        begin = _floats(theta)
         scan = int(options.get("scan", 0))
         e = self.entries.get(name)
         if e is not None and same_start(e.get("from"), begin) and same_scan(e, scan):
@@ -150,6 +153,22 @@ class Journal:
         self._write_partial()
         return f
 
+    def screened(self, name: str, theta: torch.Tensor, keys: list[str]) -> list[dict] | None:
+        """The rows (:func:`~causalgs.discover.screen.screen_rows`) of the round ``name``'s screen where it was
+        finished before from ``theta`` over the candidates ``keys``, else None. A screen is a few minutes of
+        rollouts at the video level (one per parameter of the base and of every candidate), which a resumed run
+        would otherwise run again."""
+        e = self.screens.get(name)
+        if e is None or e.get("keys") != list(keys) or not same_start(e.get("from"), _floats(theta)):
+            return None
+        self.screens_reused += 1
+        return e["rows"]
+
+    def keep_screen(self, name: str, theta: torch.Tensor, keys: list[str], rows: list[dict]) -> None:
+        """Record the round ``name``'s finished screen from ``theta`` over ``keys`` (see :meth:`screened`)."""
+        self.screens[name] = {"from": _floats(theta), "keys": list(keys), "rows": rows}
+        self._write()
+
     def _keep(self, name: str, t0: float, spent: float) -> None:
         """The state of the calibration ``name`` changed: kept on disk, with the seconds it has taken so far."""
         self.partial[name]["seconds"] = round(spent + time.monotonic() - t0, 2)
@@ -157,7 +176,8 @@ class Journal:
 
     def _write(self) -> None:
         if self.path is not None:
-            write_json(self.path, {"version": VERSION, "fingerprint": self.key, "entries": self.entries})
+            write_json(self.path, {"version": VERSION, "fingerprint": self.key, "entries": self.entries,
+                                   "screens": self.screens})  # fmt: skip
 
     def _write_partial(self) -> None:
         if self.path is None:
@@ -173,6 +193,10 @@ def same_start(kept: list | None, begin: list[float]) -> bool:
     (absolute, plus as much relative). ``kept`` None (an entry written before starts were recorded) counts as the
     same."""
     return kept is None or (len(kept) == len(begin) and np.allclose(kept, begin, rtol=SAME_START, atol=SAME_START))
+
+
+def _floats(theta: torch.Tensor) -> list[float]:
+    return [float(v) for v in theta.detach().double()]
 
 
 def _finite(v: float) -> float:

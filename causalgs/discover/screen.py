@@ -99,6 +99,15 @@ def _step_bounds(model: PhysicsModel, c: Candidate, theta: torch.Tensor, Jb: np.
     return lo, hi
 
 
+def candidate_model(base: PhysicsModel, c: Candidate, models: dict | None = None) -> PhysicsModel:
+    """The model of ``base`` with candidate ``c`` added (from ``models``, a cache by key, where it is there)."""
+    model = (models or {}).get(c.key) or PhysicsModel(base.obs, c.spec(base.effects), c.learn(base.learn),
+                                                      res=base.res, E_range=base.E_range, nu_range=base.nu_range)
+    if models is not None:
+        models[c.key] = model
+    return model
+
+
 def screen(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate], frames,
            models: dict | None = None) -> list[Screened]:  # fmt: skip
     """Score every candidate (see the module docstring); best first. ``models`` caches candidate models by key."""
@@ -110,10 +119,7 @@ def screen(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate],
     rb, _ = _residual_after(Jb, r)
     out = []
     for c in candidates:
-        model = (models or {}).get(c.key) or PhysicsModel(base.obs, c.spec(base.effects), c.learn(base.learn),
-                                                          res=base.res, E_range=base.E_range, nu_range=base.nu_range)
-        if models is not None:
-            models[c.key] = model
+        model = candidate_model(base, c, models)
         th = transfer(base, theta, model)
         xc = positions(model, th, frames)
         plan = model.plan_of[2]
@@ -145,4 +151,28 @@ def screen(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate],
         start = model.values(th)
         step = {p: start[p] + float(s) for p, s in zip(c.params, sol[Jb.shape[1] :], strict=True)}
         out.append(Screened(c, gain, step, model, th, probes))
+    return sorted(out, key=lambda s: -s.gain)
+
+
+def screen_rows(screened: list[Screened]) -> list[dict]:
+    """What a screen found, as JSON: per candidate its key, gain, predicted step and probe (see :func:`restore`)."""
+    return [{"effect": s.candidate.key, "gain": float(s.gain), "step": {p: float(v) for p, v in s.step.items()},
+             "probe": None if s.probe is None else [float(v) for v in s.probe]} for s in screened]  # fmt: skip
+
+
+def restore(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate], rows: list[dict],
+            models: dict | None = None) -> list[Screened]:  # fmt: skip
+    """The screen of ``candidates`` from ``base`` at ``theta`` as :func:`screen_rows` kept it, without a rollout:
+    each candidate's model and start θ are made again (:func:`transfer` is exact), its scores taken from ``rows``.
+    Best first, as :func:`screen` orders them."""
+    by_key = {r["effect"]: r for r in rows}
+    if sorted(by_key) != sorted(c.key for c in candidates):
+        raise CausalGSError(f"a kept screen holds {sorted(by_key)}, not the candidates {[c.key for c in candidates]}")
+    out = []
+    for c in candidates:
+        r = by_key[c.key]
+        model = candidate_model(base, c, models)
+        probe = None if r["probe"] is None else tuple(float(v) for v in r["probe"])
+        out.append(Screened(c, float(r["gain"]), {p: float(v) for p, v in r["step"].items()}, model,
+                            transfer(base, theta, model), probe))  # fmt: skip
     return sorted(out, key=lambda s: -s.gain)

@@ -34,7 +34,7 @@ from causalgs.discover.gate import GateConfig, block_bootstrap, effective_n, jud
 from causalgs.discover.journal import Journal
 from causalgs.discover.model import PhysicsModel
 from causalgs.discover.observation import Observation, noise_floor
-from causalgs.discover.screen import screen, sensitivities
+from causalgs.discover.screen import restore, screen, screen_rows, sensitivities
 from causalgs.errors import CausalGSError
 
 
@@ -1104,7 +1104,13 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         # the journal's name of this round: its number and the effects accepted before it (the model it starts from)
         accepted = [d["effect"] for d in report["discovered"]]
         where = f"round {round_ + 1}" + (f" after {'+'.join(accepted)}" if accepted else "")
-        screened = screen(current.model, current.fit.theta, pool, fit_frames(current.model))
+        models: dict = {}  # each candidate's model, made once for the screen and for what follows it
+        keys, theta = [c.key for c in pool], current.fit.theta
+        rows = journal.screened(f"{where}/screen", theta, keys)
+        if rows is None:
+            rows = screen_rows(screen(current.model, theta, pool, fit_frames(current.model), models))
+            journal.keep_screen(f"{where}/screen", theta, keys, rows)
+        screened = restore(current.model, theta, pool, rows, models)
         sig = report["disagreement"]["signatures"] if round_ == 0 else current_signatures(current, obs)
         elastic = list(current.model.pinned(current.fit.theta, [k.name for k in current.model.knobs
                                                                 if k.kind in ("E", "nu")]))  # fmt: skip
@@ -1251,6 +1257,7 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
     report["final_spec"] = current.model.spec_at(current.fit.theta)
     report["seconds"] = time.monotonic() - t0
     report["calibrations_resumed"] = journal.reused
+    report["screens_resumed"] = journal.screens_reused
     if journal.restarted:  # kept from another start (the starting rules changed): computed again
         report["calibrations_restarted"] = list(journal.restarted)
     traj = {"before": first.sim, "after": current.sim}

@@ -1395,6 +1395,46 @@ def test_a_second_round_screen_starts_from_the_accepted_model():
     assert gains["linear_drag"] > 0.9, gains  # over 12 frames a push or a quadratic drag mimic it: the refits decide
 
 
+def test_a_kept_screen_is_restored_exactly_and_only_for_its_own_start(tmp_path):
+    """A finished screen is kept in the journal by its round's name, its start θ and its candidates: read back in a
+    resumed run it gives the same candidates in the same order with the same gains, steps, probes and refit starts
+    (each candidate's θ carried from the base's as the screen carried it), without a rollout; from another start or
+    over other candidates it is not found, and rows of other candidates are refused."""
+    from causalgs.discover.candidates import BY_KEY
+    from causalgs.discover.journal import Journal
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.screen import restore, screen, screen_rows, transfer
+    from causalgs.errors import CausalGSError
+
+    obs, truth, th = _thrown_cube("gravity;ground:mu=0.3;walls;linear_drag:c=2.0", (0.0, 0.0, 0.12), (1.2, 0.0, 0.8),
+                                  observed=10, frames=12)  # fmt: skip
+    base = PhysicsModel(obs, "gravity;ground:mu=0.3;walls", res=16)
+    theta = transfer(truth, th, base)
+    frames = list(range(1, obs.observed))
+    pool = [BY_KEY[k] for k in ("force", "linear_drag", "plasticity")]
+    keys = [c.key for c in pool]
+    fresh = screen(base, theta, pool, frames)
+    j = Journal(tmp_path / "progress.json", "key")
+    assert j.screened("round 1/screen", theta, keys) is None
+    j.keep_screen("round 1/screen", theta, keys, screen_rows(fresh))
+    again = Journal(tmp_path / "progress.json", "key", resume=True)
+    rows = again.screened("round 1/screen", theta, keys)
+    kept = restore(base, theta, pool, rows)
+    assert [s.candidate.key for s in kept] == [s.candidate.key for s in fresh]
+    for a, b in zip(kept, fresh, strict=True):
+        assert a.gain == b.gain and a.step == b.step and a.probe == b.probe, a.candidate.key
+        assert torch.equal(a.theta, b.theta) and a.model.spec == b.model.spec, a.candidate.key
+    assert fresh[0].candidate.key == "linear_drag" and fresh[0].probe is not None  # the premise: a real screen
+    assert next(s.probe for s in fresh if s.candidate.key == "plasticity") is not None  # a threshold's best probe
+    moved = theta.clone()
+    moved[0] += 0.01
+    assert again.screened("round 1/screen", moved, keys) is None
+    assert again.screened("round 1/screen", theta, keys[:2]) is None
+    assert again.screened("round 2 after linear_drag/screen", theta, keys) is None
+    with pytest.raises(CausalGSError, match="kept screen holds"):
+        restore(base, theta, pool[:2], rows)
+
+
 def test_table_plan_runs_twenty_negative_controls():
     from causalgs.discover.table import CASES, TableConfig, plan
 

@@ -103,7 +103,7 @@ def test_nothing_is_found_when_nothing_is_missing(ti32_runtime, tmp_path):
     assert "No missing effect" in (tmp_path / "report.md").read_text()
 
 
-def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_path):
+def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_path, monkeypatch):
     obs = _throw(C_TRUE)
     obs.save(tmp_path / "obs.npz")
     out = tmp_path / "d"
@@ -123,10 +123,21 @@ def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_
     assert "base/3e+04" in done and "round 1/linear_drag/start 1" in done and rep["calibrations_resumed"] == 0
     r = CliRunner().invoke(cli, args[:-1])
     assert r.exit_code == 1 and "already holds a discovery run: use --resume" in r.output, r.output
-    r = CliRunner().invoke(cli, [*args, "--resume"])
+    # The screen of each round was kept too: resumed, none runs again, and the rounds read as they did.
+    screens = json.loads((out / "progress.json").read_text())["screens"]
+    assert list(screens) == [f"round {i + 1}/screen" for i in range(len(rep["rounds"]))] and rep["screens_resumed"] == 0
+    assert screens["round 1/screen"]["keys"] == ["linear_drag"]
+
+    def no_screen(*a, **k):
+        raise AssertionError("a kept screen was run again")
+
+    with monkeypatch.context() as m:
+        m.setattr("causalgs.discover.search.screen", no_screen)
+        r = CliRunner().invoke(cli, [*args, "--resume"])
     assert r.exit_code == 0, r.output
     again = json.loads(r.output)
     assert again["calibrations_resumed"] == len(done) and "calibrations_restarted" not in again  # the same starts
+    assert again["screens_resumed"] == len(screens) and again["rounds"] == rep["rounds"]
     assert again["discovered"][0]["params"] == rep["discovered"][0]["params"]
     # Options that decide between calibrations (how many effects at most) reuse them; options that change a
     # calibration's result (its iteration budget) are not mixed in.
