@@ -7,6 +7,7 @@ traceback.
 
 from __future__ import annotations
 
+import signal
 import sys
 from pathlib import Path
 
@@ -154,7 +155,23 @@ cli.add_command(discover)
 cli.add_command(discover_table)
 
 
+def stop_cleanly_on_sigterm() -> None:
+    """Make SIGTERM end the command as an exit does (status 143) rather than killing it outright, so that what runs at
+    exit still runs: Taichi writes the kernels the process compiled to its offline cache (minutes of compiling for
+    a gradient kernel), which a killed process loses. Every output is written atomically, so a stop between two
+    kernels leaves no partial file. A run started in the background of a script ignores SIGINT (the shell makes
+    every such job do), so SIGTERM is how such a run is stopped. A handler someone else installed is kept."""
+    if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, _exit_on_sigterm)
+
+
+def _exit_on_sigterm(signum, frame) -> None:
+    click.echo("Terminated.", err=True)
+    sys.exit(128 + signal.SIGTERM)
+
+
 def main():
+    stop_cleanly_on_sigterm()
     cli(prog_name="causalgs")
 
 

@@ -303,28 +303,49 @@ def execute(todo: list, jobs: int, local, worker, args: tuple, failed, finish, l
         return
     import multiprocessing
     import os
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-    from concurrent.futures.process import BrokenProcessPool
+    from concurrent.futures import ProcessPoolExecutor
 
     threads = max(1, (os.cpu_count() or 1) // jobs)
     ctx = multiprocessing.get_context("spawn")  # Taichi's runtime must not be forked
-    with ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init, initargs=(threads,)) as pool:
-        futures = {pool.submit(worker, name, seed, *args): (name, seed) for name, seed in todo}
-        log(f"{len(todo)} runs, {jobs} at once")
-        broken = []
-        for fut in as_completed(futures):
-            name, seed = futures[fut]
-            try:
-                row = fut.result()
-            except BrokenProcessPool:
-                broken.append(f"{name} (seed {seed})")
-                continue
-            except Exception as e:
-                row = failed(name, seed, f"{type(e).__name__}: {e}")
-            finish(row)
+    pool = ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init, initargs=(threads,))
+    try:
+        broken = _collect(pool, todo, worker, args, failed, finish, log, jobs)
+    except BaseException:
+        # Stopped (Ctrl-C, or SIGTERM, which the command line turns into an exit): the workers stop too, rather
+        # than the exit waiting hours for the runs under way. Each run keeps what it finished and resumes.
+        workers = multiprocessing.active_children()
+        for p in workers:
+            p.terminate()
+        for p in workers:
+            p.join(timeout=10)
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
     if broken:
         log(f"a worker process died (killed or crashed), so these runs have no row; run the table again to resume "
             f"them: {', '.join(broken)}")
+
+
+def _collect(pool, todo: list, worker, args: tuple, failed, finish, log, jobs: int) -> list[str]:
+    """Submit ``todo`` to ``pool`` and hand each row to ``finish`` as it ends (see :func:`execute`); the runs a
+    broken pool took with it."""
+    from concurrent.futures import as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
+    futures = {pool.submit(worker, name, seed, *args): (name, seed) for name, seed in todo}
+    log(f"{len(todo)} runs, {jobs} at once")
+    broken = []
+    for fut in as_completed(futures):
+        name, seed = futures[fut]
+        try:
+            row = fut.result()
+        except BrokenProcessPool:
+            broken.append(f"{name} (seed {seed})")
+            continue
+        except Exception as e:
+            row = failed(name, seed, f"{type(e).__name__}: {e}")
+        finish(row)
+    return broken
 
 
 def _slug(name: str) -> str:

@@ -545,6 +545,28 @@ def test_a_dead_worker_leaves_its_runs_for_the_resumed_table():
     assert rows == [] and "a worker process died" in logs[-1] and "(seed 3)" in logs[-1], logs
 
 
+def test_a_stopped_table_stops_its_workers_instead_of_waiting_for_their_runs():
+    """Stopped while runs are under way in worker processes (Ctrl-C, or SIGTERM, which the command line turns into an
+    exit), the table stops its workers and ends at once: the stop propagates, and no worker is left running the
+    minute-long run it was given."""
+    import multiprocessing
+    import operator
+    import time
+
+    import causalgs.discover.table as T
+
+    def stop(line):
+        raise KeyboardInterrupt
+
+    before = multiprocessing.active_children()  # an earlier test's pool may still be winding down
+    t0 = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        T.execute([(time.sleep, 60), (time.sleep, 61)], 2, None, operator.call, (), lambda *a: pytest.fail("a row"),
+                  lambda row: pytest.fail("a row"), stop)  # fmt: skip
+    assert [p for p in multiprocessing.active_children() if p not in before] == []
+    assert time.monotonic() - t0 < 45  # the runs would have taken a minute; spawning two workers takes seconds
+
+
 def test_no_further_round_once_the_repaired_model_agrees_within_the_noise(ti32_runtime, tmp_path):
     """After the drag is found, the repaired model fits the window at the noise and the held-out frames within what
     a correct model misses them by: a second round would only fit the noise, and is not run."""
