@@ -160,8 +160,7 @@ def screen_rows(screened: list[Screened]) -> list[dict]:
              "probe": None if s.probe is None else [float(v) for v in s.probe]} for s in screened]  # fmt: skip
 
 
-def restore(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate], rows: list[dict],
-            models: dict | None = None) -> list[Screened]:  # fmt: skip
+def restore(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate], rows: list[dict]) -> list[Screened]:
     """The screen of ``candidates`` from ``base`` at ``theta`` as :func:`screen_rows` kept it, without a rollout:
     each candidate's model and start θ are made again (:func:`transfer` is exact), its scores taken from ``rows``.
     Best first, as :func:`screen` orders them."""
@@ -171,7 +170,7 @@ def restore(base: PhysicsModel, theta: torch.Tensor, candidates: list[Candidate]
     out = []
     for c in candidates:
         r = by_key[c.key]
-        model = candidate_model(base, c, models)
+        model = candidate_model(base, c)
         probe = None if r["probe"] is None else tuple(float(v) for v in r["probe"])
         out.append(Screened(c, float(r["gain"]), {p: float(v) for p, v in r["step"].items()}, model,
                             transfer(base, theta, model), probe))  # fmt: skip

@@ -1104,13 +1104,13 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
         # the journal's name of this round: its number and the effects accepted before it (the model it starts from)
         accepted = [d["effect"] for d in report["discovered"]]
         where = f"round {round_ + 1}" + (f" after {'+'.join(accepted)}" if accepted else "")
-        models: dict = {}  # each candidate's model, made once for the screen and for what follows it
         keys, theta = [c.key for c in pool], current.fit.theta
-        rows = journal.screened(f"{where}/screen", theta, keys)
-        if rows is None:
-            rows = screen_rows(screen(current.model, theta, pool, fit_frames(current.model), models))
-            journal.keep_screen(f"{where}/screen", theta, keys, rows)
-        screened = restore(current.model, theta, pool, rows, models)
+        kept = journal.screened(f"{where}/screen", theta, keys)
+        if kept is None:
+            screened = screen(current.model, theta, pool, fit_frames(current.model))
+            journal.keep_screen(f"{where}/screen", theta, keys, screen_rows(screened))
+        else:
+            screened = restore(current.model, theta, pool, kept)
         sig = report["disagreement"]["signatures"] if round_ == 0 else current_signatures(current, obs)
         elastic = list(current.model.pinned(current.fit.theta, [k.name for k in current.model.knobs
                                                                 if k.kind in ("E", "nu")]))  # fmt: skip
