@@ -313,15 +313,11 @@ def execute(todo: list, jobs: int, local, worker, args: tuple, failed, finish, l
     except BaseException:
         # Stopped (Ctrl-C, or SIGTERM, which the command line turns into an exit): the workers stop too, rather
         # than the exit waiting hours for the runs under way. Each run keeps what it finished and resumes.
-        pool.shutdown(wait=False, cancel_futures=True)
-        workers = multiprocessing.active_children()
-        for p in workers:
+        # The pool's own thread sees them end and reaps them; joined here too, a worker could be reaped twice and
+        # then read as alive ever after.
+        for p in multiprocessing.active_children():
             p.terminate()
-        for p in workers:
-            p.join(timeout=5)
-            if p.is_alive():  # not ended by SIGTERM within that (seen once under load): killed
-                p.kill()
-                p.join()
+        pool.shutdown(wait=True, cancel_futures=True)
         raise
     pool.shutdown()
     if broken:
