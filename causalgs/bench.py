@@ -11,6 +11,7 @@ import statistics
 import time
 from collections.abc import Callable, Iterable
 
+import numpy as np
 import torch
 
 from causalgs.cameras import Camera, look_at
@@ -329,3 +330,42 @@ def discover_benchmark(resolutions: Iterable[int] = (20, 43), repeats: int = 5, 
         yield {"bench": "discover", "grid": res, "points": obs.points, "frames": frames, "fps": fps,
                "substeps": substeps, "rollout_ms": round(median, 2), "first_rollout_ms": round(first, 1),
                "ms_per_substep": round(median / max(substeps, 1), 4), "repeats": repeats}  # fmt: skip
+
+
+def discover_workers_benchmark(res: int = 43, workers: Iterable[int] = (2,), repeats: int = 3, frames: int = 30,
+                               fps: float = 24.0, effects: str = "gravity;ground:mu=0.3;walls") -> Iterable[dict]:
+    """One record per worker count: the seconds of one Levenberg–Marquardt Jacobian (a rollout per parameter of the
+    ``toss`` landing's model, :func:`~causalgs.discover.calibrate.jacobian`) here and with that many worker
+    processes (:mod:`causalgs.discover.workers`), timed in turn in one run, their medians and ratio, and the largest
+    difference between the two (cm per unit step)."""
+    from causalgs.discover import workers as W
+    from causalgs.discover.calibrate import fit_frames, jacobian, positions
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.observation import synthesize
+
+    obs = synthesize("toss", effects, seed=0, points=1_000_000, frames=frames, fps=fps, reference_res=res)
+    model = PhysicsModel(obs, effects, ("ground.mu", "ground.d"), res=res)
+    theta = model.initial(E=3e4)
+    fr = fit_frames(model)
+    x = positions(model, theta, fr)
+    for n in workers:
+        with W.rollout_workers(n) as pool:
+            started = time.perf_counter()
+            jacobian(model, theta, fr, base=x)  # the workers start and build their kernels
+            warm_up = time.perf_counter() - started
+            here, there, diff = [], [], 0.0
+            for _ in range(repeats):
+                W._active = None
+                t0 = time.perf_counter()
+                serial = jacobian(model, theta, fr, base=x)
+                here.append(time.perf_counter() - t0)
+                W._active = pool
+                t0 = time.perf_counter()
+                par = jacobian(model, theta, fr, base=x)
+                there.append(time.perf_counter() - t0)
+                diff = max(diff, float(np.abs(par - serial).max()))
+        a, b = float(np.median(here)), float(np.median(there))
+        yield {"bench": "discover-workers", "grid": res, "points": obs.points, "frames": frames, "fps": fps,
+               "params": len(theta), "workers": n, "serial_s": round(a, 3), "workers_s": round(b, 3),
+               "speedup": round(a / b, 3), "first_call_s": round(warm_up, 2), "max_difference_cm": diff,
+               "repeats": repeats}  # fmt: skip

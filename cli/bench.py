@@ -116,17 +116,28 @@ def sim(counts, grids, repeats, segment, compile_, as_json, device, precision):
 @click.option("--repeats", type=click.IntRange(1, 1000), default=5, show_default=True, help="Timed runs per case.")
 @click.option("--frames", type=click.IntRange(2, 1000), default=30, show_default=True,
               help="Frames of the landing (at 24 fps: the trajectory table's window).")  # fmt: skip
+@click.option("--fps", type=click.FloatRange(1.0, 1000.0), default=24.0, show_default=True,
+              help="Frame rate of the landing (the video table's is 120).")  # fmt: skip
+@click.option("--workers", default=None,
+              help="Also time one calibration Jacobian (a rollout per parameter) here and with each of these "
+                   "counts of worker processes, comma-separated (`causalgs discover --workers`), on the first grid "
+                   "of --grids.")  # fmt: skip
 @device_option
 @precision_option
-def discover_bench(grids, repeats, frames, device, precision):
+def discover_bench(grids, repeats, frames, fps, workers, device, precision):
     """Seconds of one discovery rollout of the hidden-effect table's tossed block (its landing, the truth's
-    particles on the truth's grid) and milliseconds per MPM substep: a discovery runs hundreds of these."""
+    particles on the truth's grid) and milliseconds per MPM substep: a discovery runs hundreds of these. With
+    --workers, the seconds of a Jacobian here and in worker processes, timed in turn, and their ratio."""
     from causalgs import _ti
-    from causalgs.bench import discover_benchmark
+    from causalgs.bench import discover_benchmark, discover_workers_benchmark
 
     _ti.init(device, precision)
-    for rec in discover_benchmark(_ints(grids, "--grids"), repeats, frames):
+    resolutions = _ints(grids, "--grids")
+    for rec in discover_benchmark(resolutions, repeats, frames, fps):
         click.echo(json.dumps(rec))
+    if workers:
+        for rec in discover_workers_benchmark(resolutions[0], _ints(workers, "--workers"), repeats, frames, fps):
+            click.echo(json.dumps(rec))
 
 
 @bench.command(name="fit")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import click
@@ -25,6 +26,14 @@ def _names(text: str | None, what: str) -> tuple[str, ...] | None:
     if not items and what == "--candidates":
         raise CausalGSError("--candidates: give at least one candidate")
     return items
+
+
+def _cpus(share: int = 1) -> int:
+    """CPUs this process may use, over ``share`` (at least 1): the default count of rollout workers."""
+    from causalgs import _ti
+
+    allowed = _ti.allowed_cpus()
+    return max(1, (len(allowed) if allowed else (os.cpu_count() or 1)) // share)
 
 
 def _starts(text: str) -> tuple[float, ...]:
@@ -101,6 +110,10 @@ def _starts(text: str) -> tuple[float, ...]:
                    "auto, where rigid tracks are chosen), else the base fit's departure from rigid motion; 'base': "
                    "the base fit's departure always (a stiff base, calibrated without the missing effect, barely "
                    "deforms and weighs little).")  # fmt: skip
+@click.option("--workers", type=click.IntRange(0, 256), default=0,
+              help="Processes the independent rollouts of every calibration run in (a Jacobian's columns, a scan's "
+                   "grid points, a step's damping trials), each on a CPU of its own; the results do not depend on "
+                   "it. 0: one per CPU this process may use; 1: all here.  [default: 0]")  # fmt: skip
 @precision_option
 @click.option("--resume", is_flag=True,
               help="Continue the discovery run in --out (stopped, or to redo its outputs) from the calibrations it "
@@ -108,7 +121,7 @@ def _starts(text: str) -> tuple[float, ...]:
                    "same.")  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print report.json to stdout.")
 def discover(source, out, spec, learn, candidates, max_effects, res, starts, iterations, tracking, lens, split, stretch,
-             weigh, weigh_by, precision, resume, as_json):  # fmt: skip
+             weigh, weigh_by, workers, precision, resume, as_json):  # fmt: skip
     """Find where simulation and measurement disagree, name the missing physical effect, add it, show the gap shrink.
 
     SOURCE is a fitted run folder (`causalgs fit`: the measurement is the tracked motion of its particles over the
@@ -155,7 +168,7 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     if 0 < res < 8:
         raise CausalGSError(f"--res {res}: give 0 (a run's own grid) or at least 8 cells")
     cfg = DiscoverConfig(res=res, starts=_starts(starts), iterations=iterations, max_effects=max_effects,
-                         weigh=weigh, weigh_by=weigh_by)  # fmt: skip
+                         weigh=weigh, weigh_by=weigh_by, workers=workers or _cpus())  # fmt: skip
     _ti.init("cpu", precision, quiet=True)
     from causalgs.progress import progress_bar
 
@@ -206,6 +219,9 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
                    "prediction by 2-3 cm.")
 @click.option("--jobs", type=click.IntRange(1, 64), default=1, show_default=True,
               help="Runs at once, each in its own process.")
+@click.option("--workers", type=click.IntRange(0, 256), default=0,
+              help="Rollout workers of each run's discovery, as `causalgs discover --workers`. 0: the CPUs this "
+                   "process may use over --jobs.  [default: 0]")
 @click.option("--rigid-tracks", is_flag=True,
               help="Trajectory level: observe each body through its best rigid motion, as tracks from video do, and "
                    "discover through that lens: what rigid tracks hide (a wobble, a squash) without the errors of "
@@ -229,8 +245,8 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
               help="Video level: run nothing; collect the rows of these tables (repeat the option; one table run in "
                    "pieces with --only and --first-seed) into --out, each row taken only where its video was "
                    "rendered as the case is defined now, a later table's row replacing an earlier one.")
-def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, jobs, rigid_tracks, lens, stretch, weigh,
-                   retry_failed, level, merge):
+def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, jobs, workers, rigid_tracks, lens,
+                   stretch, weigh, retry_failed, level, merge):
     """Reproduce the hidden-effect table: for every effect of the catalogue, a tossed block simulated with it and
     a model without it; negative controls; an effect outside the catalogue.
 
@@ -274,6 +290,7 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
         from causalgs.discover.table import CASES, TableConfig, run_table
     from causalgs.discover.table import summary
 
+    workers = workers or _cpus(jobs)
     names = _names(only, "--only") or ()
     known = {c.name for c in CASES} | {c.kind for c in CASES}
     bad = [n for n in names if n not in known]
@@ -283,13 +300,13 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
         _ti.init("cpu", "float32", quiet=True)
     if level == "video":
         vcfg = VideoTableConfig(seeds=seeds, first_seed=first_seed, only=names, control_seeds=control_seeds,
-                                jobs=jobs, discover=DiscoverConfig(res=res or 0, weigh=weigh),
+                                jobs=jobs, discover=DiscoverConfig(res=res or 0, weigh=weigh, workers=workers),
                                 truth_grid=not (run_grid or res), lens=lens, stretch=stretch)  # fmt: skip
         rows = run_video_table(out, vcfg, log=_console_log(), retry_failed=retry_failed)
     else:
         res = res or 20
         cfg = TableConfig(seeds=seeds, first_seed=first_seed, res=res, only=names, control_seeds=control_seeds,
-                          jobs=jobs, rigid=rigid_tracks, discover=DiscoverConfig(res=res))  # fmt: skip
+                          jobs=jobs, rigid=rigid_tracks, discover=DiscoverConfig(res=res, workers=workers))  # fmt: skip
         rows = run_table(out, cfg, log=_console_log(), retry_failed=retry_failed)
     s = summary(rows)
     click.echo(json.dumps(s))

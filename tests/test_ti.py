@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 
@@ -38,6 +40,30 @@ def test_bad_thread_setting(monkeypatch):
     monkeypatch.delenv(_ti.THREADS_ENV)
     _ti._set_torch_threads()
     assert torch.get_num_threads() == 1
+
+
+def test_a_cpu_list_pins_the_process_and_a_bad_one_is_one_line(monkeypatch):
+    assert _ti.parse_cpus("0,2-3") == [0, 2, 3] and _ti.parse_cpus(" 1 ") == [1]
+    for bad in ("two", "3-1", "-1", "0,,1"):
+        with pytest.raises(RuntimeConfigError, match=f"CAUSALGS_TI_CPUS={bad!r} is not a CPU list"):
+            _ti.parse_cpus(bad)
+    monkeypatch.delenv(_ti.CPUS_ENV, raising=False)
+    assert _ti.cpus_from_env() is None
+    allowed = _ti.allowed_cpus()
+    monkeypatch.setenv(_ti.CPUS_ENV, str(max(allowed) + 1))
+    with pytest.raises(RuntimeConfigError, match=re.escape(f"may run on CPUs {allowed} only")):
+        _ti.cpus_from_env()
+    import os
+    import subprocess
+    import sys
+
+    # a fresh process with the variable set runs where it says once Taichi starts, and its threads with it
+    code = ("import os; from causalgs import _ti; before = os.sched_getaffinity(0); _ti.init('cpu'); "
+            "print(sorted(before), sorted(os.sched_getaffinity(0)))")  # fmt: skip
+    env = {**os.environ, _ti.CPUS_ENV: str(allowed[-1])}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split("\n")[-2] == f"{allowed} {[allowed[-1]]}"
 
 
 def test_reinitialise_changes_precision_and_invalidates_stores(capfd):

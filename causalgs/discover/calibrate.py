@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from causalgs.discover import workers
 from causalgs.discover.model import PhysicsModel
 from causalgs.errors import CausalGSError
 
@@ -149,6 +150,8 @@ def jacobian(model: PhysicsModel, theta: torch.Tensor, frames, indices=None, bas
              and torch.equal(last[0], theta.detach().double()))  # fmt: skip
     x0 = base if known else positions(model, theta, frames)
     plan = model.plan_of[2]  # θ's, either way
+    if workers.active() is not None and len(indices) > 1:
+        return _parallel_jacobian(model, theta, frames, indices, x0, plan, step)
     cols = []
     for i in indices:
         th = theta.clone()
@@ -159,6 +162,30 @@ def jacobian(model: PhysicsModel, theta: torch.Tensor, frames, indices=None, bas
             th[i] -= 2 * step
             cols.append(-change(model, theta, th, frames, x0, plan) / step)
     return np.stack(cols, axis=1) if cols else np.zeros((len(x0), 0))
+
+
+def _parallel_jacobian(model: PhysicsModel, theta: torch.Tensor, frames, indices: list[int], x0: np.ndarray,
+                       plan: list[int], step: float) -> np.ndarray:  # fmt: skip
+    """:func:`jacobian`'s columns rolled out by the active worker pool (:mod:`causalgs.discover.workers`), each as
+    :func:`change` takes it: forwards, and backwards where the forward step blew the simulation up."""
+
+    def stepped(sign: float, which) -> list:
+        out = []
+        for i in which:
+            th = theta.detach().clone()
+            th[i] += sign * step
+            out.append(th)
+        return workers.moved(model, theta, out, frames, plan)
+
+    results = dict(zip(indices, stepped(1.0, indices), strict=True))
+    blown = [i for i in indices if isinstance(results[i], str)]
+    sign = dict.fromkeys(indices, 1.0)
+    for i, r in zip(blown, stepped(-1.0, blown) if blown else [], strict=True):
+        if isinstance(r, str):
+            raise CausalGSError(r)
+        results[i], sign[i] = r, -1.0
+    cols = [sign[i] * (results[i][0] - (x0 if results[i][1] is None else results[i][1])) / step for i in indices]
+    return np.stack(cols, axis=1)
 
 
 def calibrate(model: PhysicsModel, theta0: torch.Tensor, frames=None, *, iterations: int = 25,
@@ -277,25 +304,38 @@ def scanned_start(model: PhysicsModel, theta0: torch.Tensor, frames, resume: Res
         if resume is not None:  # JSON has no infinity
             resume.put("scan", {"done": i, "loss": min(best_loss, 1e300), "theta": _vector(best)})
 
-    for i, ((E, nu), point) in enumerate(itertools.product(mats, grid)):
-        if i < done:
-            continue
-        if i > done:
-            keep(i)
+    def at(E: float, nu: float, point) -> torch.Tensor:
         th = theta0.detach().clone()
         th[E_idx] = model.E_internal(E)
         th[nu_idx] = model.nu_internal(nu)
         for j, v in zip(effects, point, strict=True):
             th[j] = model.knobs[j].internal(v)
-        try:
-            with torch.no_grad():
-                loss = float(mse(model, th, frames))
-        except CausalGSError:
-            continue
-        if math.isfinite(loss) and loss < best_loss:
-            best, best_loss = th, loss
+        return th
+
+    todo = list(enumerate(itertools.product(mats, grid)))[done:]
+    pool = workers.active()
+    batch = 1 if pool is None else 2 * pool.jobs  # a batch of grid points at once, kept after each
+    for b in range(0, len(todo), batch):
+        chunk = todo[b : b + batch]
+        if chunk[0][0] > done:
+            keep(chunk[0][0])
+        thetas = [at(E, nu, point) for _, ((E, nu), point) in chunk]
+        found = workers.losses(model, thetas, frames) if pool is not None else [_loss(model, thetas[0], frames)]
+        for th, loss in zip(thetas, found, strict=True):
+            if loss is not None and loss < best_loss:
+                best, best_loss = th, loss
     keep(len(mats) * len(grid))
     return best
+
+
+def _loss(model: PhysicsModel, theta: torch.Tensor, frames) -> float | None:
+    """:func:`mse` at ``theta``, or None where the simulation blows up or the error is not finite."""
+    try:
+        with torch.no_grad():
+            loss = float(mse(model, theta, frames))
+    except CausalGSError:
+        return None
+    return loss if math.isfinite(loss) else None
 
 
 def _start_stiffness(model: PhysicsModel, theta0: torch.Tensor) -> float:
@@ -360,14 +400,9 @@ def _levenberg_marquardt(model: PhysicsModel, theta0: torch.Tensor, frames, iter
         D = np.diag(A) + 1e-9 * max(float(np.diag(A).max()), 1e-12)
         before = loss
         accepted = False
-        for _ in range(10):
-            delta = np.linalg.solve(A + lam * np.diag(D), g)
-            trial = theta.clone()
-            trial[np.asarray(idx)[moving]] += torch.as_tensor(delta, dtype=trial.dtype)
+        for x2, trial in _trials(model, theta, frames, A, D, g, np.asarray(idx)[moving], lam):
             count += 1
-            try:
-                x2 = positions(model, trial, frames)
-            except CausalGSError:
+            if x2 is None:  # the simulation blew up
                 lam *= 10.0
                 continue
             r2 = target - x2
@@ -383,6 +418,42 @@ def _levenberg_marquardt(model: PhysicsModel, theta0: torch.Tensor, frames, iter
         if resume is not None:
             resume.put("lm", {"theta": _vector(theta), "lam": lam, "evaluations": count, "iteration": it + 1})
     return Fit(theta, loss, count, E0)
+
+
+TRIALS = 10  # damping factors an iteration tries, each ten times the last, before it stops
+
+
+def _trials(model: PhysicsModel, theta: torch.Tensor, frames, A: np.ndarray, D: np.ndarray, g: np.ndarray,
+            where: np.ndarray, lam: float):  # fmt: skip
+    """(positions or None where the simulation blew up, θ) of the damped steps from ``theta`` at λ, 10λ, 100λ, …
+    (:data:`TRIALS` at most), lazily: the caller stops at the first it accepts. With a worker pool
+    (:mod:`causalgs.discover.workers`) they are rolled out a pool's worth at once, the later ones on cores that
+    would otherwise wait; the model's ``plan_of`` is then each one's as it is handed out, as a rollout here leaves
+    it (:func:`jacobian` finds the accepted one's schedule there)."""
+    def step(k: int) -> torch.Tensor:
+        delta = np.linalg.solve(A + lam * 10.0**k * np.diag(D), g)
+        trial = theta.clone()
+        trial[where] += torch.as_tensor(delta, dtype=trial.dtype)
+        return trial
+
+    pool = workers.active()
+    if pool is None:
+        for k in range(TRIALS):
+            trial = step(k)
+            try:
+                yield positions(model, trial, frames), trial
+            except CausalGSError:
+                yield None, trial
+        return
+    frames = [int(f) for f in frames]
+    for first in range(0, TRIALS, pool.jobs):
+        batch = [step(k) for k in range(first, min(first + pool.jobs, TRIALS))]
+        for trial, got in zip(batch, workers.rollouts(model, batch, frames), strict=True):
+            if isinstance(got, str):
+                yield None, trial
+                continue
+            model.plan_of = (trial.detach().double().clone(), tuple(frames), got[1])
+            yield got[0], trial
 
 
 def multistart(model: PhysicsModel, starts=(1e4, 1e5), frames=None, *, iterations: int = 25,

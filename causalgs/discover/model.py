@@ -45,6 +45,21 @@ PINNED = 1e-3  # a bounded parameter whose sigmoid is this close to 0 or 1 is he
 SUBSTEP_COST = 2.0  # a learned effect parameter may shorten the substep this many times below the elastic one
 
 
+_UNPICKLED: dict = {}  # (runtime generation, config) -> the simulator every unpickled model of that config shares
+
+
+def _unpickled_simulator(config: SimConfig) -> Simulator:
+    """One simulator per config for the models unpickled in this process (a worker receives one state of a model
+    after another, :mod:`causalgs.discover.workers`): a model's rollouts pass it all they depend on (materials,
+    effect parameters, schedule), and every new simulator allocates its grid again."""
+    from causalgs.model.scene import _sim_store
+
+    key = (_ti.generation(), repr(config))
+    if key not in _UNPICKLED:
+        _UNPICKLED[key] = Simulator(_sim_store(CAPACITY, SEGMENT), config)
+    return _UNPICKLED[key]
+
+
 @dataclass(frozen=True)
 class Knob:
     """One entry of θ: its name, what it sets, and the map from internal units to its value."""
@@ -139,6 +154,23 @@ class PhysicsModel:
                 knobs.append(Knob(n, "effect", index=i, scale=scale, offset=float(flat[i])))
         self.knobs = knobs
         self.names = [k.name for k in knobs]
+
+    def __getstate__(self) -> dict:
+        """Everything but the simulator, which holds Taichi fields of this process: its config instead (a model sent
+        to a worker process, :mod:`causalgs.discover.workers`, builds its own there)."""
+        state = {k: v for k, v in self.__dict__.items() if k not in ("sim", "_owner", "plan_of")}
+        state["sim"] = self.sim.config
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        from causalgs.model.scene import _OWNER
+
+        state = dict(state)
+        config = state.pop("sim")
+        self.__dict__.update(state)
+        self.sim = _unpickled_simulator(config)
+        self.plan_of = None
+        self._owner = _OWNER
 
     def _substep_cap(self, effect: str, param: str) -> float | None:
         """The largest value of ``effect.param`` whose stable substep is no shorter than the elastic substep of the

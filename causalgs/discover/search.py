@@ -35,6 +35,7 @@ from causalgs.discover.journal import Journal
 from causalgs.discover.model import PhysicsModel
 from causalgs.discover.observation import Observation, noise_floor
 from causalgs.discover.screen import restore, screen, screen_rows, sensitivities
+from causalgs.discover.workers import rollout_workers
 from causalgs.errors import CausalGSError
 
 
@@ -93,6 +94,9 @@ class DiscoverConfig:
     # there, stiff (208 kPa) and at ν's bound, departs from rigid too little to weigh anything.
     weigh_by: str = "tracks"
     gate: GateConfig = field(default_factory=GateConfig)
+    # Processes the independent rollouts of a calibration run in (a Jacobian's columns, a scan's grid points, a
+    # step's damping trials; :mod:`causalgs.discover.workers`). The results do not depend on it (1: here).
+    workers: int = 1
 
 
 @dataclass
@@ -1012,6 +1016,12 @@ def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: 
     ``journal``: where finished calibrations are kept and found again (:mod:`causalgs.discover.journal`; default:
     in memory)."""
     cfg = config or DiscoverConfig()
+    with rollout_workers(cfg.workers):
+        return _discover(obs, spec, learn, candidates=candidates, cfg=cfg, log=log, start=start, journal=journal)
+
+
+def _discover(obs: Observation, spec: str, learn, *, candidates, cfg: DiscoverConfig, log, start: dict | None,
+              journal: Journal | None) -> tuple[dict, dict]:  # fmt: skip
     log = log or (lambda msg: None)
     journal = journal if journal is not None else Journal(None, "")
     if len(journal):

@@ -398,6 +398,10 @@ class Effects:
         """Parse ``"name:param=v1,v2,...,param=...;name;..."``; every problem is one :class:`CausalGSError` line."""
         return cls([Term(REGISTRY[name], values) for name, values in parse_spec(spec)])
 
+    def __reduce__(self):
+        """Pickled as its spec, which round-trips every value exactly (the kernel and the bank are this process's)."""
+        return Effects.from_spec, (self.spec(),)
+
     def upload(self) -> None:
         """Make the bank hold this object's values (a no-op when it already does)."""
         token = (self.uid, self.version, _ti.generation())
