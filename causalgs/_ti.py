@@ -20,9 +20,10 @@ version-check network call before Taichi is loaded. Nothing initialises Taichi a
   CPUs when Taichi starts on the CPU backend. Taichi hands every parallel loop from the launching thread to its
   pool's threads and waits; with a second CPU idle, each handoff wakes a thread there, which on a virtual machine
   is an interrupt to another virtual CPU. Measured on this project's 2-core machines (``causalgs bench``): a
-  discovery rollout of the toss landing (2380 particles, 43 cells) took 0.22 s unpinned and 0.058 s pinned to one
-  CPU, the MPM's forward+backward substep 6.21 → 3.58 ms (2197 particles) and 18.0 → 12.5 ms (8000), the
-  rasterizer's forward+backward 48.8 → 48.2 ms (a second CPU gave it nothing). Unset: the process runs where the
+  discovery rollout of the toss landing took 1668 ms unpinned and 739 ms pinned to one CPU (2380 particles, 43
+  cells; 240 particles on 20 cells: 220 and 58 ms), the MPM's forward+backward substep 6.21 → 3.58 ms (2197
+  particles) and 18.0 → 12.5 ms (8000), the rasterizer's forward+backward 48.8 → 48.2 ms (a second CPU gave it
+  nothing). Unset: the process runs where the
   system puts it. Discovery's rollout workers (:mod:`causalgs.discover.workers`) are pinned one CPU each.
 """
 

@@ -27,12 +27,13 @@ DEFAULT_LEARN = ("ground.mu",)
 
 
 def load_source(source, *, refine: bool = True, lens: str = "auto", split: bool = True, stretch: bool = False,
-                progress=None) -> tuple[Observation, dict]:  # fmt: skip
+                progress=None, workers: int = 1) -> tuple[Observation, dict]:  # fmt: skip
     """The observation at ``source`` and the base model it implies: an ``.npz`` observation file (no base: the
     defaults), or a fitted run folder (:func:`causalgs.discover.video.observation_from_run`: the run's physics; its
     tracked motion refined frame by frame unless ``refine`` is False, with the tracks' ``lens`` ("auto", "rigid" or
     "affine"), refined from each half of the cameras too where ``split``, the stretching tracks at the frames where
-    the bodies deform where ``stretch``, ``progress(done, total)`` following it). Anything else is a one-line error."""
+    the bodies deform where ``stretch``, ``progress(done, total)`` following it, refinements that do not depend on
+    one another in ``workers`` processes at once). Anything else is a one-line error."""
     source = Path(source)
     if source.is_dir():
         if not (source / "config.toml").is_file() or not (source / "checkpoint.pt").is_file():
@@ -41,7 +42,7 @@ def load_source(source, *, refine: bool = True, lens: str = "auto", split: bool 
         from causalgs.discover.video import REFINE, observation_from_run
 
         return observation_from_run(source, refine=REFINE if refine else None, lens_kind=lens, split=split,
-                                    stretch=stretch, progress=progress)  # fmt: skip
+                                    stretch=stretch, progress=progress, workers=workers)  # fmt: skip
     return load_observation(source), {}
 
 
@@ -61,7 +62,8 @@ def run_discovery(source, out, *, spec: str | None = None, learn=None, candidate
         Effects.from_spec(spec)  # a malformed spec is a one-line error before any work
     base = dict(base or {})
     if obs is None:
-        obs, base = load_source(source, refine=refine, lens=lens, split=split, stretch=stretch, progress=progress)
+        obs, base = load_source(source, refine=refine, lens=lens, split=split, stretch=stretch, progress=progress,
+                                workers=cfg.workers)  # fmt: skip
     spec = spec if spec is not None else base.get("spec", DEFAULT_SPEC)
     learn = tuple(learn) if learn is not None else tuple(base.get("learn", DEFAULT_LEARN))
     if cfg.res <= 0:  # the run's grid, else the default

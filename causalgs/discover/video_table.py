@@ -156,7 +156,7 @@ def _discover(*args, grid=None, lens: str = "auto", stretch: bool = False, **kwa
     from causalgs.discover.run import load_source, run_discovery
 
     # read once, for discovery and for the table's tracking error
-    obs, base = load_source(args[0], lens=lens, stretch=stretch)
+    obs, base = load_source(args[0], lens=lens, stretch=stretch, workers=kwargs["config"].workers)
     plain, _ = load_source(args[0], refine=False)
     if grid is not None:
         obs.lo, obs.hi = (tuple(float(v) for v in b) for b in grid[:2])

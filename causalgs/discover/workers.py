@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import multiprocessing
-import os
 import pickle
 import shutil
 import tempfile
@@ -40,19 +38,12 @@ class RolloutPool:
     """``jobs`` worker processes for :func:`moved` and :func:`losses` (see the module docstring)."""
 
     def __init__(self, jobs: int):
-        from concurrent.futures import ProcessPoolExecutor
+        from causalgs.processes import pinned_pool
 
-        from causalgs import _ti
-
-        rt = _ti.runtime()
         self.jobs = int(jobs)
         self.dir = Path(tempfile.mkdtemp(prefix="causalgs-rollouts-"))
         self._files: OrderedDict[str, Path] = OrderedDict()
-        ctx = multiprocessing.get_context("spawn")  # Taichi's runtime must not be forked
-        slots = ctx.Value("i", 0)  # each worker takes the next and runs on that CPU of the machine's
-        self._pool = ProcessPoolExecutor(self.jobs, mp_context=ctx, initializer=_init,
-                                         initargs=(rt.device, rt.precision, rt.debug, slots,
-                                                   _ti.allowed_cpus()))  # fmt: skip
+        self._pool = pinned_pool(self.jobs)  # the caller waits while they roll out: every CPU is theirs
 
     def model_file(self, model) -> str:
         """The file the workers read ``model`` from, written where its state is new."""
@@ -138,19 +129,6 @@ def losses(model, thetas: list[torch.Tensor], frames) -> list[float | None]:
 
 # -- in a worker ---------------------------------------------------------------------------------------------------
 _models: OrderedDict[str, object] = OrderedDict()
-
-
-def _init(device: str, precision: str, debug: bool, slots, cpus: list[int] | None) -> None:
-    from causalgs import _ti
-
-    os.environ[_ti.TI_THREADS_ENV] = "1"  # a worker is one core's share of the pool ...
-    with slots.get_lock():
-        slot = slots.value
-        slots.value += 1
-    os.environ.pop(_ti.CPUS_ENV, None)  # not the caller's CPUs ...
-    if cpus:  # ... but one of them of its own (causalgs._ti: pinned, a rollout runs several times faster)
-        _ti.pin([cpus[slot % len(cpus)]])
-    _ti.init(device, precision, debug=debug, quiet=True)
 
 
 def _model(path: str):

@@ -487,15 +487,12 @@ def tracks_name(stretch: bool, bend: bool) -> str:
     return ("tracks-bent" if bend else "tracks-affine") if stretch else "tracks"
 
 
-def cached_tracks(run_dir, model, data, timeline, cfg: RefineConfig | None = None, progress=None,
-                  half: int | None = None, frames: int | None = None) -> Tracks:  # fmt: skip
-    """The refined tracks of the run at ``run_dir``: read from its ``tracks.npz`` when that was made from this fit
-    with these settings, else computed by :func:`refine_tracks` and written there (atomically). ``half``,
-    ``frames``: fitted to that half of the cameras over the first so many frames (``tracks-half0.npz``, ...)."""
-    cfg = cfg or RefineConfig()
+def _tracks_file(run_dir, model, cfg: RefineConfig, half: int | None, frames: int | None) -> tuple[Path, str]:
     name = tracks_name(cfg.stretch, cfg.bend)
-    path = Path(run_dir) / (f"{name}.npz" if half is None else f"{name}-half{half}.npz")
-    key = _key(model, cfg, half, frames)
+    return Path(run_dir) / (f"{name}.npz" if half is None else f"{name}-half{half}.npz"), _key(model, cfg, half, frames)
+
+
+def _read_tracks(path: Path, key: str, cfg: RefineConfig) -> Tracks | None:
     if path.is_file():
         try:
             with np.load(path) as z:
@@ -504,7 +501,27 @@ def cached_tracks(run_dir, model, data, timeline, cfg: RefineConfig | None = Non
                     return Tracks(z["A"], z["b"], z["psnr_before"], z["psnr_after"], str(z["scored_on"]), key,
                                   cfg.stretch, **bent)  # fmt: skip
         except (OSError, KeyError, ValueError):
-            pass  # unreadable or of another version: made again below
+            pass  # unreadable or of another version: made again
+    return None
+
+
+def tracks_kept(run_dir, model, cfg: RefineConfig | None = None, half: int | None = None,
+                frames: int | None = None) -> bool:  # fmt: skip
+    """Whether :func:`cached_tracks` with these arguments would read them from the run rather than refine them."""
+    cfg = cfg or RefineConfig()
+    return _read_tracks(*_tracks_file(run_dir, model, cfg, half, frames), cfg) is not None
+
+
+def cached_tracks(run_dir, model, data, timeline, cfg: RefineConfig | None = None, progress=None,
+                  half: int | None = None, frames: int | None = None) -> Tracks:  # fmt: skip
+    """The refined tracks of the run at ``run_dir``: read from its ``tracks.npz`` when that was made from this fit
+    with these settings, else computed by :func:`refine_tracks` and written there (atomically). ``half``,
+    ``frames``: fitted to that half of the cameras over the first so many frames (``tracks-half0.npz``, ...)."""
+    cfg = cfg or RefineConfig()
+    path, key = _tracks_file(run_dir, model, cfg, half, frames)
+    kept = _read_tracks(path, key, cfg)
+    if kept is not None:
+        return kept
     partial = path.with_name(f"{path.stem}.partial.npz")  # where an interrupted refinement goes on from
     tr = refine_tracks(model, data, timeline, cfg, progress, half=half, frames=frames, checkpoint=partial)
     bent = {} if tr.P is None else {k: getattr(tr, k) for k in ("P", "centre", "radius", "pattern_body")}

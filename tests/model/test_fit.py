@@ -1264,3 +1264,28 @@ def test_an_interrupted_refinement_goes_on_from_its_last_frame(fitted, tmp_path)
     kept = cached_tracks(run, m, data, tl, cfg, progress=lambda d, t: seen.append(d))
     assert seen[0] == 2 and (run / "tracks-bent.npz").is_file() and not (run / "tracks-bent.partial.npz").exists()
     assert np.abs(kept.b - whole.b).max() < 1e-4
+
+
+def test_refinements_in_worker_processes_are_the_serial_ones(fitted, tmp_path):
+    """With workers, the rigid and the stretching tracks are refined at once (the stretching ones in a worker
+    process that loads the run itself), then the two halves: the same tracks as one after the other (to the float32
+    renderer's parallel sums), read back from the run by the same keys, and this process follows only its own."""
+    import shutil
+
+    from causalgs.discover.video import observation_from_run
+    from causalgs.model.refine import RefineConfig
+
+    quick = RefineConfig(iterations=2, views=1)
+    runs = {w: tmp_path / f"run{w}" for w in (1, 2)}
+    steps = {w: [] for w in runs}
+    obs = {}
+    for w, run in runs.items():
+        shutil.copytree(fitted, run)
+        obs[w], _ = observation_from_run(run, refine=quick, progress=lambda *a, w=w: steps[w].append(a), workers=w)
+    names = ("tracks.npz", "tracks-affine.npz", "tracks-half0.npz", "tracks-half1.npz")
+    for name in names if obs[1].lens_kind == "rigid" else names[:2]:
+        with np.load(runs[1] / name) as a, np.load(runs[2] / name) as b:
+            assert str(a["key"]) == str(b["key"]), name
+            assert np.abs(a["b"] - b["b"]).max() < 1e-4 and np.abs(a["A"] - b["A"]).max() < 1e-4, name
+    assert obs[2].lens_kind == obs[1].lens_kind and np.abs(obs[2].x - obs[1].x).max() < 1e-4
+    assert len(steps[2]) < len(steps[1])  # the worker's refinements report nowhere here
