@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from causalgs.discover import residuals as R
+from causalgs.discover import workers
 from causalgs.discover.calibrate import UNIT, Fit, fit_frames, live, positions, scale
 from causalgs.discover.candidates import BY_KEY, Candidate, select
 from causalgs.discover.gate import GateConfig, block_bootstrap, effective_n, judge
@@ -418,31 +419,50 @@ def rest_shape_draws(model: PhysicsModel, theta: torch.Tensor, J: np.ndarray, si
     n_fit = len(fr) * model.obs.points * 3
     pinv = refit_map(model, J)
     rng = np.random.default_rng(seed)
-    x0, points0 = model.x0, model.points0
+    x0 = model.x0
     extent = extent if model.obs.mix is not None else 0.0
+    draws = []  # (where the material starts, where the measured points start), drawn in turn
+    for _ in range(samples):
+        noisy = x0 + torch.as_tensor(rng.normal(0.0, sigma, tuple(x0.shape)), dtype=x0.dtype)
+        material = noisy
+        if extent > 0:
+            obs = model.obs
+            material = torch.as_tensor(extent_draw(noisy.double().numpy(), obs.body, obs.vol, extent, rng),
+                                       dtype=x0.dtype)  # fmt: skip
+        draws.append((material, noisy))
     shifts, changes = [], []
-    try:
-        for _ in range(samples):
-            noisy = x0 + torch.as_tensor(rng.normal(0.0, sigma, tuple(x0.shape)), dtype=x0.dtype)
-            model.points0 = noisy
-            model.x0 = noisy
-            if extent > 0:
-                obs = model.obs
-                model.x0 = torch.as_tensor(extent_draw(noisy.double().numpy(), obs.body, obs.vol, extent, rng),
-                                           dtype=x0.dtype)  # fmt: skip
-            try:
-                with model.sim.holding(plan):
-                    d = positions(model, theta, fr + fut) - base
-            except CausalGSError:  # a draw that blows the simulation up says nothing about the spread
-                continue
-            shift = -(pinv @ d[:n_fit])
-            shifts.append(shift)
-            changes.append(d[n_fit:] + (J_fut @ shift if fut else 0.0))
-    finally:
-        model.x0, model.points0 = x0, points0
+    for x in displaced_rollouts(model, theta, fr + fut, plan, draws):
+        if x is None:  # a draw that blows the simulation up says nothing about the spread
+            continue
+        d = x - base
+        shift = -(pinv @ d[:n_fit])
+        shifts.append(shift)
+        changes.append(d[n_fit:] + (J_fut @ shift if fut else 0.0))
     if not shifts:
         return np.zeros((0, len(theta))), np.zeros((0, len(base) - n_fit))
     return np.array(shifts), np.array(changes)
+
+
+def displaced_rollouts(model: PhysicsModel, theta: torch.Tensor, frames, plan: list[int], starts) -> list:
+    """:func:`~causalgs.discover.calibrate.positions` at ``theta`` over ``frames`` (at the substep schedule ``plan``)
+    from each (material, measured points) start of ``starts`` in place of the model's rest shape, or None where
+    the simulation blew up; in the rollout workers where a pool is open (:mod:`causalgs.discover.workers`). The
+    model is left as it was."""
+    if workers.active() is not None and len(starts) > 1:
+        return [None if isinstance(r, str) else r for r in workers.displaced(model, theta, frames, plan, starts)]
+    x0, points0 = model.x0, model.points0
+    out = []
+    try:
+        for material, points in starts:
+            model.x0, model.points0 = material, points
+            try:
+                with model.sim.holding(plan):
+                    out.append(positions(model, theta, frames))
+            except CausalGSError:
+                out.append(None)
+    finally:
+        model.x0, model.points0 = x0, points0
+    return out
 
 
 def drift_field(obs: Observation, z: np.ndarray) -> np.ndarray:

@@ -119,6 +119,18 @@ def rollouts(model, thetas: list[torch.Tensor], frames) -> list:
     return _active.map(_positions, [(path, t.detach().double().clone(), frames) for t in thetas])
 
 
+def displaced(model, theta: torch.Tensor, frames, plan: list[int], starts) -> list:
+    """For every (material, measured points) start of ``starts``: the positions over ``frames`` at ``theta`` and the
+    substep schedule ``plan`` from there in place of the model's rest shape
+    (:func:`~causalgs.discover.search.displaced_rollouts`), or the simulator's one-line error, in the workers of the
+    active pool. The model goes once; each start goes with its own rollout."""
+    path = _active.model_file(model)
+    th = theta.detach().double().clone()
+    frames = [int(f) for f in frames]
+    return _active.map(_displaced, [(path, th, frames, list(plan), m.detach().clone(), p.detach().clone())
+                                    for m, p in starts])  # fmt: skip
+
+
 def losses(model, thetas: list[torch.Tensor], frames) -> list[float | None]:
     """:func:`~causalgs.discover.calibrate.mse` at every θ of ``thetas`` (None where the simulation blew up), in
     the workers of the active pool."""
@@ -166,6 +178,22 @@ def _positions(path: str, theta: torch.Tensor, frames: list[int]):
         return positions(model, theta, frames), list(model.sim.last_plan)
     except CausalGSError as e:
         return str(e)
+
+
+def _displaced(path: str, theta: torch.Tensor, frames: list[int], plan: list[int], material: torch.Tensor,
+               points: torch.Tensor):  # fmt: skip
+    from causalgs.discover.calibrate import positions
+
+    model = _model(path)
+    x0, points0 = model.x0, model.points0
+    model.x0, model.points0 = material, points
+    try:
+        with model.sim.holding(plan):
+            return positions(model, theta, frames)
+    except CausalGSError as e:
+        return str(e)
+    finally:
+        model.x0, model.points0 = x0, points0
 
 
 def _loss(path: str, theta: torch.Tensor, frames: list[int]) -> float | None:

@@ -149,3 +149,24 @@ def test_each_worker_runs_on_a_cpu_of_its_own(bounce, pool):
     assert len(cpus) == 2 and all(len(c) == 1 and c[0] in allowed for c in cpus), cpus
     if len(allowed) >= 2:
         assert cpus[0] != cpus[1], cpus
+
+
+def test_rest_shape_draws_from_the_workers_are_the_serial_ones(bounce, pool):
+    """Each draw starts the simulation from another rest shape: the workers roll out the same draws, in the same
+    order, and the model keeps its own rest shape."""
+    from causalgs.discover.calibrate import fit_frames, jacobian
+    from causalgs.discover.search import rest_shape_draws
+
+    m, start = bounce
+    fr = fit_frames(m)
+    fut = list(range(m.obs.observed, len(m.obs.times)))
+    J = jacobian(m, start, fr)
+    J_fut = jacobian(m, start, fut)
+    x0 = m.x0.clone()
+    with workers_off():
+        serial = rest_shape_draws(m, start, J, 0.002, fut, J_fut, samples=4)
+    par = rest_shape_draws(m, start, J, 0.002, fut, J_fut, samples=4)
+    assert serial[0].shape == (4, len(start)) and np.abs(serial[1]).max() > 0
+    for a, b in zip(serial, par, strict=True):
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-6 * np.abs(a).max())
+    assert torch.equal(m.x0, x0) and torch.equal(m.points0, x0)
