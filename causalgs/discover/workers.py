@@ -11,9 +11,9 @@ else stays where it was. The results are the same rollouts, so a calibration tak
 changes.
 
 A model goes to the workers as a file: pickled without its simulator (which a worker builds once on its own runtime,
-its kernels from the offline cache) and named by the digest of everything else. A model changed in place (the rest
-shape of a bootstrap draw, the residual weights of a weighted base) is a new digest and goes again, so a worker never
-rolls out a stale one.
+its kernels from the offline cache) and named by the digest of everything else. A model changed in place (the residual weights
+of a weighted base) is a new digest and goes again, so a worker never rolls out a stale one; the rest shapes of the
+rest-shape draws go with each rollout instead (:func:`displaced`).
 """
 
 from __future__ import annotations
@@ -35,7 +35,8 @@ KEEP_MODELS = 4  # models a worker keeps built (a round's base and candidates in
 
 
 class RolloutPool:
-    """``jobs`` worker processes for :func:`moved` and :func:`losses` (see the module docstring)."""
+    """``jobs`` worker processes for :func:`moved`, :func:`rollouts`, :func:`displaced` and :func:`losses` (see the
+    module docstring)."""
 
     def __init__(self, jobs: int):
         from causalgs.processes import pinned_pool
