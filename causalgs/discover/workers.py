@@ -11,9 +11,9 @@ else stays where it was. The results are the same rollouts, so a calibration tak
 changes.
 
 A model goes to the workers as a file: pickled without its simulator (which a worker builds once on its own runtime,
-its kernels from the offline cache) and named by the digest of everything else. A model changed in place (the residual weights
-of a weighted base) is a new digest and goes again, so a worker never rolls out a stale one; the rest shapes of the
-rest-shape draws go with each rollout instead (:func:`displaced`).
+its kernels from the offline cache) and named by the digest of everything else. A model changed in place (the
+residual weights of a weighted base) is a new digest and goes again, so a worker never rolls out a stale one; the
+rest shapes of the rest-shape draws go with each rollout instead (:func:`displaced`).
 """
 
 from __future__ import annotations
