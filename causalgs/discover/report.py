@@ -88,7 +88,7 @@ def plot_residuals(traj: dict, obs: Observation, path: Path) -> None:
             for k in ("before", "after")}  # fmt: skip
     vmax = max(float(errs["before"].max()), 1e-6)
     where = obs.x[fut[-1]]
-    fig, axes = plt.subplots(2, 2, figsize=(8.0, 6.4))
+    fig, axes = plt.subplots(2, 2, figsize=(8.4, 6.8), layout="constrained")
     for col, k in enumerate(("before", "after")):
         for row, (i, j, name) in enumerate(((0, 2, "side (x–z)"), (0, 1, "top (x–y)"))):
             ax = axes[row, col]
@@ -99,6 +99,11 @@ def plot_residuals(traj: dict, obs: Observation, path: Path) -> None:
             # one colour scale for both, so a repair that works turns dark; the median says by how much
             ax.set_title(f"{k}: {name}, median {float(np.median(errs[k])):.3g} mm", fontsize=9)
             ax.tick_params(labelsize=7)
+            ax.locator_params(nbins=5)
+            ax.set_xlabel("xyz"[i] + " (m)", fontsize=8)
+            ax.set_ylabel("xyz"[j] + " (m)", fontsize=8)
+    fig.suptitle(f"each particle's error over the held-out frames {fut[0]}–{fut[-1]}, where it is at frame {fut[-1]}",
+                 fontsize=10)  # fmt: skip
     fig.colorbar(sc, ax=axes, shrink=0.8, label="held-out RMS distance (mm)")
     _save(fig, path)
 
