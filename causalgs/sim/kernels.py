@@ -172,21 +172,26 @@ def substep(
     backward recomputes a substep's grid with it too, so the phase kernels below compile only for their gradients
     and for the tests and the benchmark that hold this kernel to them (``Simulator.step(phased=True)``).
     ``v_scatter`` is what P2G scatters: ``vc`` when the effects have a particle stage, else ``v``."""
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for _ in range(1):
         _box_reset(grid_m.shape, box)
     ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
         _box_grow(x[p, s], lo[0], inv_dx, grid_m.shape, box)
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for i, j, k in ti.ndrange((box[0], box[3]), (box[1], box[4]), (box[2], box[5])):
         _clear_node(ti.Vector([i, j, k]), grid_v_in, grid_m, grid_v_out)
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for p in range(n):
         _stress_at(p, C, F, vol, density, E, nu, affine, s, dt, inv_dx, model, effects)
     if ti.static(effects.has_particle):
+        ti.loop_config(serialize=ti.static(_ti.serial_loops()))
         for p in range(n):
             vc[p, s] = effects.particle(v[p, s], x[p, s], dt)
     ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
     for p in range(n):
         _scatter_at(p, x, v_scatter, vol, density, affine, grid_v_in, grid_m, s, lo[0], inv_dx)
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for i, j, k in ti.ndrange((box[0], box[3]), (box[1], box[4]), (box[2], box[5])):
         _update_node(ti.Vector([i, j, k]), grid_v_in, grid_m, grid_v_out, dt, lo[0], dx, effects)
     ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
@@ -201,6 +206,7 @@ def particle_box(x: ti.template(), s: ti.i32, n: ti.i32, lo: ti.template(), inv_
     """The box of grid nodes the particles' stencils reach: ``box`` = [lo_i, lo_j, lo_k, hi_i, hi_j, hi_k) (hi
     exclusive). Every grid loop runs over this box only: nodes outside it hold stale values that nothing in this
     substep reads (a body in a 64³ grid touches a few percent of its nodes)."""
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for _ in range(1):
         _box_reset(shape, box)
     ti.loop_config(serialize=ti.static(_ti.serial_scatter()))
@@ -210,6 +216,7 @@ def particle_box(x: ti.template(), s: ti.i32, n: ti.i32, lo: ti.template(), inv_
 
 @ti.kernel
 def clear_grid(grid_v_in: ti.template(), grid_m: ti.template(), grid_v_out: ti.template(), box: ti.template()):
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for i, j, k in ti.ndrange((box[0], box[3]), (box[1], box[4]), (box[2], box[5])):
         _clear_node(ti.Vector([i, j, k]), grid_v_in, grid_m, grid_v_out)
 
@@ -234,6 +241,7 @@ def stress(
     """Per particle: the trial F = (I + dt C[p, s]) F[p, s], return-mapped by the plastic terms, into F[p, s+1]; its
     Kirchhoff stress (material + stress terms) folded with the APIC term into ``affine[p]`` (MLS-MPM eq. 29: the
     stress force uses ∇w ≈ 4/dx² w (x_i − x_p)). Mass = density · volume, so the density has a gradient."""
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for p in range(n):
         _stress_at(p, C, F, vol, density, E, nu, affine, s, dt, inv_dx, model, effects)
 
@@ -244,6 +252,7 @@ def particle_terms(x: ti.template(), v: ti.template(), vc: ti.template(), s: ti.
     """Per particle: its velocity after the particle-stage effects (contact met by the particles themselves) into
     ``vc[p, s]``, which P2G then scatters in place of ``v[p, s]`` (a separate field: no kernel overwrites what it
     reads). Its gradient is Taichi's autodiff."""
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for p in range(n):
         vc[p, s] = effects.particle(v[p, s], x[p, s], dt)
 
@@ -251,6 +260,7 @@ def particle_terms(x: ti.template(), v: ti.template(), vc: ti.template(), s: ti.
 @ti.kernel
 def zero_slot_grad(f: ti.template(), s: ti.i32, n: ti.i32):
     """Zero the adjoint of slot ``s`` of a substep-indexed vector field (once the kernels that read it have run)."""
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for p in range(n):
         f.grad[p, s] = ti.Vector.zero(float, 3)
 
@@ -340,6 +350,7 @@ def grid_update(
     zero velocity (branch-free: the division uses a safe mass so its adjoint stays finite). A node counts as empty
     below ``MASS_EPS``: at the edge of a B-spline's support a node can get a denormal mass in float32, whose adjoint
     −mv/m² overflows to inf and, times a zero adjoint, poisons every particle with NaN."""
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for i, j, k in ti.ndrange((box[0], box[3]), (box[1], box[4]), (box[2], box[5])):
         _update_node(ti.Vector([i, j, k]), grid_v_in, grid_m, grid_v_out, dt, lo[0], dx, effects)
 
@@ -403,6 +414,7 @@ def g2p_adjoint(
 @ti.kernel
 def clear_grid_grad(grid_v_in: ti.template(), grid_m: ti.template(), grid_v_out: ti.template(), box: ti.template()):
     """Zero the grid adjoints (in the particles' box) before the gradient kernels of one substep."""
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for i, j, k in ti.ndrange((box[0], box[3]), (box[1], box[4]), (box[2], box[5])):
         I = ti.Vector([i, j, k])
         grid_v_in.grad[I] = ti.Vector.zero(float, 3)
@@ -414,6 +426,7 @@ def clear_grid_grad(grid_v_in: ti.template(), grid_m: ti.template(), grid_v_out:
 def carry_adjoint(x: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), dst: ti.i32, n: ti.i32):
     """Between two segments of the backward: the adjoint of slot 0 (the start of the later segment) becomes the
     adjoint of slot ``dst`` (the end of the earlier one); every other slot's adjoint is zeroed."""
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for p in range(n):
         gx, gv, gC, gF = x.grad[p, 0], v.grad[p, 0], C.grad[p, 0], F.grad[p, 0]
         for s in range(x.grad.shape[1]):
@@ -432,6 +445,7 @@ def copy_slot(
     x: ti.template(), v: ti.template(), C: ti.template(), F: ti.template(), src: ti.i32, dst: ti.i32, n: ti.i32
 ):
     """Carry the end state of a segment into slot 0 of the next (the checkpoint boundary)."""
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for p in range(n):
         x[p, dst] = x[p, src]
         v[p, dst] = v[p, src]
@@ -453,6 +467,7 @@ def rows_to_slot(
     n: ti.i32,
 ):
     """Copy the store's plain state fields (x, v, C, F) into slot ``s`` of the substep-indexed ones."""
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for p in range(n):
         x[p, s] = x0[p]
         v[p, s] = v0[p]
@@ -473,6 +488,7 @@ def slot_to_rows(
     s: ti.i32,
     n: ti.i32,
 ):
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for p in range(n):
         x0[p] = x[p, s]
         v0[p] = v[p, s]
@@ -484,8 +500,10 @@ def slot_to_rows(
 def frame_stats(x: ti.template(), v: ti.template(), F: ti.template(), s: ti.i32, n: ti.i32, lo: ti.template(),
                 inv_dx: float, shape: ti.template(), stats: ti.template()):  # fmt: skip
     """stats = [Σ |x|+|v|+|F| (non-finite if any entry is), max |v|, particles outside the grid, 0]."""
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for i in range(stats.shape[0]):
         stats[i] = 0.0
+    ti.loop_config(serialize=ti.static(_ti.serial_loops()))
     for p in range(n):
         Xp = (x[p, s] - lo[0]) * inv_dx
         stats[0] += x[p, s].norm() + v[p, s].norm() + F[p, s].norm()

@@ -131,3 +131,49 @@ def test_hand_written_g2p_adjoint_equals_autodiff(ti64, mk):
         out.append([st.to_torch("x_seg", grad=True, slot=0), g.v_out.grad.to_torch()])
     for a, b, name in zip(*out, ("x", "grid v_out"), strict=True):
         assert torch.allclose(a, b, rtol=1e-12, atol=1e-12 * float(a.abs().max())), name
+
+
+_SERIAL = """
+import sys, torch
+sys.path.insert(0, {here!r})
+import conftest as c
+from causalgs import _ti
+_ti.init("cpu", "float64")
+assert _ti.serial_loops(), "one Taichi thread on the CPU runs every loop serially"
+sim, inp, w = c.throw(segment=2)
+leaves = {{k: v.clone().requires_grad_(True) for k, v in inp.items()}}
+loss = c.throw_loss(sim, leaves, w)
+loss.backward()
+torch.save({{"loss": loss.detach(), **{{k: v.grad for k, v in leaves.items()}}}}, {out!r})
+"""
+
+
+def test_serial_loops_give_the_pools_loss_and_gradients(ti64, mk, tmp_path):
+    """With one Taichi thread on the CPU every top-level loop of the simulator runs on the launching thread
+    (:func:`causalgs._ti.serial_loops`, as in discovery's rollout workers): a fresh process with
+    ``$CAUSALGS_TI_THREADS=1`` gives the throw's loss and gradients of this process's pool (all cores: parallel
+    loops wherever the machine has more than one)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from causalgs import _ti
+
+    out = tmp_path / "serial.pt"
+    code = _SERIAL.format(here=str(Path(__file__).parent), out=str(out))
+    env = {**os.environ, _ti.TI_THREADS_ENV: "1"}
+    env.pop(_ti.CPUS_ENV, None)
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr[-2000:]
+    serial = torch.load(out)
+    assert _ti.serial_loops() == (_ti.runtime().threads == 1)
+    sim, inp, w = mk.throw(segment=2)
+    leaves = {k: v.clone().requires_grad_(True) for k, v in inp.items()}
+    loss = mk.throw_loss(sim, leaves, w)
+    loss.backward()
+    assert torch.allclose(serial["loss"], loss.detach(), rtol=1e-12, atol=0), (float(serial["loss"]), float(loss))
+    for k, leaf in leaves.items():
+        scale = max(float(leaf.grad.abs().max()), 1.0)
+        err = float((serial[k] - leaf.grad).abs().max())
+        assert err <= 1e-10 * scale, f"{k}: serial and pooled gradients differ by {err:.3g}"
