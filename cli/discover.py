@@ -92,12 +92,12 @@ def _starts(text: str) -> tuple[float, ...]:
                    "at the bodies. The halves share most of what the tracks miss: on the landings of the video "
                    "table the tracks erred 1.75-1.97x what the halves' disagreement alone says (in flight "
                    "0.9x, where the quarter pixel is more).")  # fmt: skip
-@click.option("--stretch/--no-stretch", default=False, show_default=True,
+@click.option("--stretch/--no-stretch", default=True, show_default=True,
               help="For refined tracks of a run, where --lens auto keeps the rigid ones: at every frame where the "
                    "stretching tracks stray from them by more than the noise (the bodies deform, as at an impact, "
                    "and a rigid pose fitted to their images is off by about as much), take the stretching tracks "
-                   "and compare the simulation there through the affine lens. Off by default until the video "
-                   "table's landings have been judged with it (README).")
+                   "and compare the simulation there through the affine lens. On by default since the video table's "
+                   "landings were judged with it (README); --no-stretch keeps the rigid tracks throughout.")
 @click.option("--weigh/--no-weigh", default=False, show_default=True,
               help="Through a run's rigid lens: weigh every residual by σ/√(σ² + e²), e what the rigid tracks may "
                    "err by at that frame and body (where they cannot follow a deforming body, as at an impact), in "
@@ -229,9 +229,10 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
 @click.option("--lens", type=click.Choice(["auto", "rigid", "affine", "bent"]), default="auto", show_default=True,
               help="Video level: the refined tracks' lens, as `causalgs discover --lens` (auto: the stretching or "
                    "bent tracks where held-out cameras ask for them).")
-@click.option("--stretch", is_flag=True,
+@click.option("--stretch/--no-stretch", default=None,
               help="Video level: discover as `causalgs discover --stretch` (the stretching tracks and the affine "
-                   "lens at the frames where the bodies deform, where the rigid tracks are kept).")
+                   "lens at the frames where the bodies deform, where the rigid tracks are kept); on unless "
+                   "--no-stretch.")
 @click.option("--weigh", is_flag=True,
               help="Video level: discover as `causalgs discover --weigh` (residuals weighed down where the rigid "
                    "tracks and the stretching ones refined from the same images disagree, as at an impact).")
@@ -301,7 +302,7 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
     if level == "video":
         vcfg = VideoTableConfig(seeds=seeds, first_seed=first_seed, only=names, control_seeds=control_seeds,
                                 jobs=jobs, discover=DiscoverConfig(res=res or 0, weigh=weigh, workers=workers),
-                                truth_grid=not (run_grid or res), lens=lens, stretch=stretch)  # fmt: skip
+                                truth_grid=not (run_grid or res), lens=lens, stretch=stretch is not False)  # fmt: skip
         rows = run_video_table(out, vcfg, log=_console_log(), retry_failed=retry_failed)
     else:
         res = res or 20

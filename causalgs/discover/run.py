@@ -26,7 +26,7 @@ DEFAULT_SPEC = "gravity;ground:mu=0.3;walls"
 DEFAULT_LEARN = ("ground.mu",)
 
 
-def load_source(source, *, refine: bool = True, lens: str = "auto", split: bool = True, stretch: bool = False,
+def load_source(source, *, refine: bool = True, lens: str = "auto", split: bool = True, stretch: bool = True,
                 progress=None, workers: int = 1) -> tuple[Observation, dict]:  # fmt: skip
     """The observation at ``source`` and the base model it implies: an ``.npz`` observation file (no base: the
     defaults), or a fitted run folder (:func:`causalgs.discover.video.observation_from_run`: the run's physics; its
@@ -49,7 +49,7 @@ def load_source(source, *, refine: bool = True, lens: str = "auto", split: bool 
 def run_discovery(source, out, *, spec: str | None = None, learn=None, candidates=None,
                   config: DiscoverConfig | None = None, log=None, obs: Observation | None = None,
                   base: dict | None = None, resume: bool = False, refine: bool = True, lens: str = "auto",
-                  split: bool = True, stretch: bool = False, progress=None) -> dict:  # fmt: skip
+                  split: bool = True, stretch: bool = True, progress=None) -> dict:  # fmt: skip
     """Discover on ``source`` (or the given ``obs``) with the base model ``spec``/``learn`` (None: the run's own
     physics for a run folder, else :data:`DEFAULT_SPEC` / :data:`DEFAULT_LEARN`; ``obs`` with ``base``: what
     :func:`load_source` returned for ``source``, already loaded; ``refine``, ``lens``, ``split``, ``stretch`` and

@@ -127,7 +127,7 @@ class VideoTableConfig:
     # module docstring. It replaces ``discover.res``.
     truth_grid: bool = True
     lens: str = "auto"  # the refined tracks' lens (``causalgs discover --lens``): auto, rigid, affine or bent
-    stretch: bool = False  # stretching tracks where the bodies deform (``causalgs discover --stretch``)
+    stretch: bool = True  # stretching tracks where the bodies deform (``causalgs discover --stretch``)
 
 
 def plan(cfg: VideoTableConfig) -> list[tuple[str, int]]:

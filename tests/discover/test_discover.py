@@ -180,8 +180,9 @@ def test_discover_passes_split_and_lens_to_the_measurement(tmp_path, monkeypatch
         return _fake_report(None)
 
     monkeypatch.setattr(R, "run_discovery", fake)
-    for extra, split, lens, stretch in (([], True, "auto", False), (["--no-split", "--lens", "affine"], False, "affine",
-                                                                    False), (["--stretch"], True, "auto", True)):
+    # the stretching tracks where the bodies deform are on unless --no-stretch
+    for extra, split, lens, stretch in (([], True, "auto", True), (["--no-split", "--lens", "affine"], False, "affine",
+                                                                   True), (["--no-stretch"], True, "auto", False)):
         r = CliRunner().invoke(cli, ["discover", str(tmp_path / "obs.npz"), "--out", str(tmp_path / "d"), *extra])
         assert r.exit_code == 0, r.output
         assert seen[-1]["split"] is split and seen[-1]["lens"] == lens and seen[-1]["stretch"] is stretch
@@ -581,3 +582,22 @@ def test_no_further_round_once_the_repaired_model_agrees_within_the_noise(ti32_r
     assert len(rep["rounds"]) == 1 and rep["settled"]["round"] == 2
     assert rep["settled"]["train_rms_ratio_to_window_floor"] <= 1 and rep["settled"]["future_rms_ratio_to_floor"] <= 1
     assert "Round 2 was not run" in (tmp_path / "report.md").read_text()
+
+
+def test_discover_table_stretches_video_tracks_unless_told_not_to(tmp_path, monkeypatch):
+    """``discover-table --level video`` runs with the stretching tracks where the bodies deform unless
+    ``--no-stretch``; at trajectory level only an explicit ``--stretch`` is refused (above)."""
+    import causalgs.discover.video_table as V
+
+    seen = []
+    monkeypatch.setattr(V, "run_video_table", lambda out, cfg, **kw: seen.append(cfg) or [])
+    for extra, stretch in (([], True), (["--no-stretch"], False), (["--stretch"], True)):
+        r = CliRunner().invoke(cli, ["discover-table", "--level", "video", "--only", "linear_drag", "--out",
+                                     str(tmp_path / "t"), *extra])  # fmt: skip
+        assert r.exit_code == 0, r.output
+        assert seen[-1].stretch is stretch
+    import causalgs.discover.table as T
+
+    monkeypatch.setattr(T, "run_table", lambda out, cfg, **kw: seen.append(cfg) or [])
+    r = CliRunner().invoke(cli, ["discover-table", "--only", "linear_drag", "--out", str(tmp_path / "u")])
+    assert r.exit_code == 0 and isinstance(seen[-1], T.TableConfig), r.output

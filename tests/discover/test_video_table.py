@@ -119,7 +119,8 @@ def test_the_table_resumes_each_stage_and_records_failures(tmp_path, monkeypatch
     cfg = V.VideoTableConfig(only=("linear_drag", "friction", "outside: attractor"))
     rows = V.run_video_table(tmp_path, cfg)
     assert [c[0] for c in calls].count("synth") == 3 and [c[0] for c in calls].count("fit") == 3
-    assert all(c == ("discover", True) for c in calls if c[0] == "discover")  # a stopped discovery goes on
+    # a stopped discovery goes on, the tracks stretched where the bodies deform (the default)
+    assert all(c == ("discover", True, "stretch") for c in calls if c[0] == "discover")
     by = {r["case"]: r for r in rows}
     drag = by["linear_drag"]
     assert drag["first_ok"] and drag["param_error"] == pytest.approx(0.05) and drag["interval_covers"]
@@ -137,17 +138,17 @@ def test_the_table_resumes_each_stage_and_records_failures(tmp_path, monkeypatch
     V.run_video_table(tmp_path, cfg)  # every row is there: nothing runs again
     assert len(calls) == n
     # a new seed of the same case reuses nothing of seed 0, and a stopped fit goes on from its checkpoint
-    # (the tracks through the lens the table is told, stretched where told)
-    cfg1 = V.VideoTableConfig(only=("linear_drag",), first_seed=1, lens="affine", stretch=True)
+    # (the tracks through the lens the table is told, not stretched when told so)
+    cfg1 = V.VideoTableConfig(only=("linear_drag",), first_seed=1, lens="affine", stretch=False)
     (tmp_path / "table.json").unlink()
     rows = V.run_video_table(tmp_path, cfg1)
     assert calls[n:] == [("synth", V.BY_NAME["linear_drag"].scene), ("fit", str(tmp_path / "linear-drag-s1" / "run")),
-                         ("discover", True, "affine", "stretch")]  # fmt: skip
+                         ("discover", True, "affine")]  # fmt: skip
     # a row lost with its table: the finished dataset and run are kept, only discovery runs (and resumes)
     (tmp_path / "table.json").unlink()
     m = len(calls)
     V.run_video_table(tmp_path, cfg1)
-    assert calls[m:] == [("discover", True, "affine", "stretch")]
+    assert calls[m:] == [("discover", True, "affine")]
 
 
 def test_a_stopped_fit_resumes_and_other_tables_are_refused(tmp_path, monkeypatch):
