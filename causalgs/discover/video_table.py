@@ -147,7 +147,7 @@ def _run_fit(*args, **kwargs):
     return fit(*args, **kwargs)
 
 
-def _discover(*args, grid=None, lens: str = "auto", stretch: bool = False, **kwargs) -> tuple[dict, object, object]:
+def _discover(*args, grid=None, lens: str = "auto", stretch: bool = True, **kwargs) -> tuple[dict, object, object]:
     """(report, the run's observation, its kinematic fit's observation) of ``causalgs discover`` on a run: the
     measurement discovery used (the refined tracks) and the one it would have used without the refinement, both for
     the table's tracking error. ``grid``: (lo, hi, res), the box and cells discovery simulates on (None: the run's);
