@@ -168,6 +168,16 @@ def allowed_cpus() -> list[int] | None:
     return None if _ALLOWED is None else list(_ALLOWED)
 
 
+def confine(cpus: list[int]) -> None:
+    """From now on this process, and every process it starts, uses ``cpus`` only: it runs there (:func:`pin`), and
+    :func:`allowed_cpus`, which its worker processes take their CPUs from, is ``cpus``. A table's runs side by side
+    each get their own share of the machine this way (:func:`causalgs.processes.shares`)."""
+    global _ALLOWED
+    pin(cpus)
+    if _ALLOWED is not None:
+        _ALLOWED = sorted(cpus)
+
+
 def parse_cpus(text: str) -> list[int]:
     """``"0,2-3"`` → [0, 2, 3]; a malformed list is a one-line error naming ``$CAUSALGS_TI_CPUS``."""
     out: set[int] = set()

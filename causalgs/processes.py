@@ -9,6 +9,7 @@ run (``caller_busy``), the CPUs it is not pinned to come first, so that it keeps
 
 from __future__ import annotations
 
+import itertools
 import multiprocessing
 import os
 
@@ -24,6 +25,19 @@ def worker_cpus(caller_busy: bool) -> list[int] | None:
         return allowed
     mine = os.sched_getaffinity(0)
     return [c for c in allowed if c not in mine] + [c for c in allowed if c in mine]
+
+
+def shares(cpus: list[int] | None, jobs: int) -> list[list[int]] | None:
+    """``cpus`` split into ``jobs`` shares as even as they can be, in order (``[0, 1, 2, 3]`` over 2: ``[[0, 1],
+    [2, 3]]``); with more jobs than CPUs each job has one CPU and the CPUs are taken in turn. None (the system
+    does not say) stays None."""
+    if not cpus:
+        return None
+    n = len(cpus)
+    if jobs >= n:
+        return [[cpus[j % n]] for j in range(jobs)]
+    bounds = [j * n // jobs for j in range(jobs + 1)]
+    return [cpus[a:b] for a, b in itertools.pairwise(bounds)]
 
 
 def pinned_pool(jobs: int, *, caller_busy: bool = False):

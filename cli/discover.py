@@ -218,7 +218,8 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
                    "truth's. The landing's contact is not converged in the grid: a grid 10% off moves its held-out "
                    "prediction by 2-3 cm.")
 @click.option("--jobs", type=click.IntRange(1, 64), default=1, show_default=True,
-              help="Runs at once, each in its own process.")
+              help="Runs at once, each in its own process pinned to its own share of the CPUs "
+                   "($CAUSALGS_TI_CPUS, else all this process may use).")
 @click.option("--workers", type=click.IntRange(0, 256), default=0,
               help="Rollout workers of each run's discovery, as `causalgs discover --workers`. 0: the CPUs this "
                    "process may use over --jobs.  [default: 0]")

@@ -190,11 +190,24 @@ def _failed(case: Case, seed: int, why: str, seconds: float) -> dict:
             "future_rms_after_m": None, "future_drop": 0.0, "seconds": seconds}  # fmt: skip
 
 
-def _worker_init(threads: int) -> None:
+def _worker_init(slots, cpu_shares: list[list[int]] | None, threads: int) -> None:
+    """A table's run process: the next of ``cpu_shares`` is its own (pinned there, its Taichi pool and torch one
+    thread per CPU of it, its rollout workers inside it), or, where the system does not say, ``threads``."""
+    import os
+
     import torch
 
     from causalgs import _ti
 
+    with slots.get_lock():
+        slot = slots.value
+        slots.value += 1
+    os.environ.pop(_ti.CPUS_ENV, None)  # the share is the process's CPUs now, not the table's
+    if cpu_shares:
+        share = cpu_shares[slot % len(cpu_shares)]
+        _ti.confine(share)
+        threads = len(share)
+    os.environ[_ti.TI_THREADS_ENV] = str(threads)
     torch.set_num_threads(threads)
     _ti.init("cpu", "float32", quiet=True)
 
@@ -293,7 +306,8 @@ def pending(out: Path, level: str, runs: list, retry_failed: bool = False) -> tu
 def execute(todo: list, jobs: int, local, worker, args: tuple, failed, finish, log) -> None:
     """Run every (case, seed) of ``todo`` and hand each row to ``finish`` as it ends: here, one after the other
     (``jobs`` 1: ``local(case, seed)``), or ``jobs`` at once, each in a fresh spawned process
-    (``worker(case, seed, *args)``, a module-level function; Taichi and torch share the cores between them). A
+    (``worker(case, seed, *args)``, a module-level function), each pinned to its own share of the CPUs
+    (``$CAUSALGS_TI_CPUS``, else all this process may use: :func:`causalgs.processes.shares`). A
     run that raises is a row of the table (``failed(case, seed, why)``), not the end of it. A worker process that
     dies (killed, or crashed in native code) breaks the whole pool, and every run still in it then reports the
     break, not an outcome of its own: those get no row (a resumed table runs them again), and the log names them."""
@@ -305,9 +319,16 @@ def execute(todo: list, jobs: int, local, worker, args: tuple, failed, finish, l
     import os
     from concurrent.futures import ProcessPoolExecutor
 
+    from causalgs import _ti
+    from causalgs.processes import shares
+
+    # Each run on a share of the CPUs of its own: a Taichi process runs several times faster pinned than where the
+    # system moves it and its pool's handoffs wake the other CPUs (measured: causalgs._ti).
+    cpus = _ti.cpus_from_env() or _ti.allowed_cpus()
     threads = max(1, (os.cpu_count() or 1) // jobs)
     ctx = multiprocessing.get_context("spawn")  # Taichi's runtime must not be forked
-    pool = ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init, initargs=(threads,))
+    pool = ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init,
+                               initargs=(ctx.Value("i", 0), shares(cpus, jobs), threads))  # fmt: skip
     try:
         broken = _collect(pool, todo, worker, args, failed, finish, log, jobs)
     except BaseException:

@@ -546,6 +546,47 @@ def test_a_dead_worker_leaves_its_runs_for_the_resumed_table():
     assert rows == [] and "a worker process died" in logs[-1] and "(seed 3)" in logs[-1], logs
 
 
+def test_cpu_shares_split_the_cpus_in_order():
+    from causalgs.processes import shares
+
+    assert shares([0, 1], 2) == [[0], [1]] and shares([0, 1, 2, 3], 2) == [[0, 1], [2, 3]]
+    assert shares([0, 1, 2], 2) == [[0], [1, 2]] and shares([4, 5], 1) == [[4, 5]]
+    assert shares([0, 1], 3) == [[0], [1], [0]] and shares([3], 2) == [[3], [3]]
+    assert shares(None, 2) is None
+
+
+# run in a table's worker process: where it runs, what its workers may take, its Taichi pool and its process
+_WHERE = ("(__import__('time').sleep(2), sorted(__import__('os').sched_getaffinity(0)), "
+          "__import__('causalgs._ti', fromlist=['_']).allowed_cpus(), "
+          "__import__('causalgs._ti', fromlist=['_']).runtime().threads, __import__('os').getpid())[1:]")  # fmt: skip
+
+
+@pytest.mark.parametrize("env", [None, "last"])
+def test_runs_side_by_side_each_run_on_a_share_of_the_cpus_of_their_own(monkeypatch, env):
+    """A table's runs in worker processes are pinned to their own shares of the CPUs (all those this process may
+    use, or ``$CAUSALGS_TI_CPUS``), with one Taichi thread per CPU of it, and their own rollout workers inside it:
+    unpinned, each ran several times slower."""
+    import os
+
+    import causalgs.discover.table as T
+    from causalgs import _ti
+    from causalgs.processes import shares
+
+    cpus = _ti.allowed_cpus()
+    if env is None:
+        monkeypatch.delenv(_ti.CPUS_ENV, raising=False)
+    else:
+        cpus = [cpus[-1]]
+        monkeypatch.setenv(_ti.CPUS_ENV, str(cpus[0]))
+    rows = []
+    T.execute([(_WHERE, {}), (_WHERE, {})], 2, None, eval, (), lambda *a: pytest.fail(f"a failed row {a}"),
+              rows.append, lambda line: None)  # fmt: skip
+    assert len(rows) == 2 and len({pid for *_, pid in rows}) == 2, rows  # one run in each process
+    for where, allowed, threads, pid in rows:
+        assert pid != os.getpid() and where == allowed and threads == len(where), rows
+    assert sorted(where for where, *_ in rows) == sorted(shares(cpus, 2)), rows
+
+
 def test_a_stopped_table_stops_its_workers_instead_of_waiting_for_their_runs():
     """Stopped while runs are under way in worker processes (Ctrl-C, or SIGTERM, which the command line turns into an
     exit), the table stops its workers and ends at once: the stop propagates, and no worker is left running the
