@@ -7,8 +7,9 @@ and each holds a single core (on the CPU backend the particles scatter to the gr
 (``DiscoverConfig.workers``, ``causalgs discover --workers``) they run in ``n`` spawned processes, each with its own
 Taichi runtime of the caller's precision, one thread and one CPU of those the caller started with
 (:mod:`causalgs._ti`: pinned, a rollout runs several times faster), while the calling process waits; everything
-else stays where it was. The results are the same rollouts, so a calibration takes the same steps: only the clock
-changes.
+else stays where it was. The results are the same rollouts: in float64 to the last bit, in float32 to rounding (a
+worker's one thread adds its atomic sums in another order than the caller's pool; 6e-8 cm a rollout measured), so
+a calibration takes the same steps up to that rounding: only the clock changes.
 
 A model goes to the workers as a file: pickled without its simulator (which a worker builds once on its own runtime,
 its kernels from the offline cache) and named by the digest of everything else. A model changed in place (the

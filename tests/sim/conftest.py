@@ -147,6 +147,15 @@ def throw_loss(sim, inp, w):
     return (w["x"] * x).sum() + 0.1 * (w["v"] * v).sum() + (w["F"] * F).sum()
 
 
+def throw_gradients(segment: int) -> dict:
+    """The throw's loss (``"loss"``) and its gradient for every input of :func:`throw`, by name."""
+    sim, inp, w = throw(segment)
+    leaves = {k: v.clone().requires_grad_(True) for k, v in inp.items()}
+    loss = throw_loss(sim, leaves, w)
+    loss.backward()
+    return {"loss": loss.detach(), **{k: v.grad for k, v in leaves.items()}}
+
+
 def check_gradients(sim, inp, w, seed: int = 11) -> None:
     """The throw's autodiff gradients against float64 central differences: x0 and v0 along random directions, the
     materials along random relative directions, every effect parameter on its own."""
@@ -182,10 +191,12 @@ def check_gradients(sim, inp, w, seed: int = 11) -> None:
 def mk():
     """Helpers: ``mk.store(n)``, ``mk.block(center, count)``, ``mk.fill(store, x, E=...)``, ``mk.DX``,
     ``mk.materials(n, seed)``, ``mk.state(n, seed)``, ``mk.against_reference(store, state, mat, cfg, steps, dt)``;
-    the throw with every effect: ``mk.throw(segment)``, ``mk.throw_loss``, ``mk.check_gradients``,
+    the throw with every effect: ``mk.throw(segment)``, ``mk.throw_loss``, ``mk.throw_gradients(segment)``,
+    ``mk.check_gradients``,
     ``mk.ALL_EFFECTS``, ``mk.THROW_TIMES``."""
     return SimpleNamespace(
         store=shared_store, block=block, fill=fill_block, DX=DX, materials=random_materials, state=random_state,
         against_reference=run_against_reference, throw=throw,
-        throw_loss=throw_loss, check_gradients=check_gradients, ALL_EFFECTS=ALL_EFFECTS, THROW_TIMES=THROW_TIMES,
+        throw_loss=throw_loss, throw_gradients=throw_gradients, check_gradients=check_gradients,
+        ALL_EFFECTS=ALL_EFFECTS, THROW_TIMES=THROW_TIMES,
     )  # fmt: skip

@@ -136,15 +136,11 @@ def test_hand_written_g2p_adjoint_equals_autodiff(ti64, mk):
 _SERIAL = """
 import sys, torch
 sys.path.insert(0, {here!r})
-import conftest as c
+import conftest
 from causalgs import _ti
 _ti.init("cpu", "float64")
 assert _ti.serial_loops(), "one Taichi thread on the CPU runs every loop serially"
-sim, inp, w = c.throw(segment=2)
-leaves = {{k: v.clone().requires_grad_(True) for k, v in inp.items()}}
-loss = c.throw_loss(sim, leaves, w)
-loss.backward()
-torch.save({{"loss": loss.detach(), **{{k: v.grad for k, v in leaves.items()}}}}, {out!r})
+torch.save(conftest.throw_gradients(segment=2), {out!r})
 """
 
 
@@ -168,12 +164,11 @@ def test_serial_loops_give_the_pools_loss_and_gradients(ti64, mk, tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     serial = torch.load(out)
     assert _ti.serial_loops() == (_ti.runtime().threads == 1)
-    sim, inp, w = mk.throw(segment=2)
-    leaves = {k: v.clone().requires_grad_(True) for k, v in inp.items()}
-    loss = mk.throw_loss(sim, leaves, w)
-    loss.backward()
-    assert torch.allclose(serial["loss"], loss.detach(), rtol=1e-12, atol=0), (float(serial["loss"]), float(loss))
-    for k, leaf in leaves.items():
-        scale = max(float(leaf.grad.abs().max()), 1.0)
-        err = float((serial[k] - leaf.grad).abs().max())
+    pooled = mk.throw_gradients(segment=2)
+    assert set(serial) == set(pooled) and len(pooled) == 7, sorted(serial)  # the loss and 6 inputs' gradients
+    loss = pooled.pop("loss")
+    assert torch.allclose(serial["loss"], loss, rtol=1e-12, atol=0), (float(serial["loss"]), float(loss))
+    for k, grad in pooled.items():
+        scale = max(float(grad.abs().max()), 1.0)
+        err = float((serial[k] - grad).abs().max())
         assert err <= 1e-10 * scale, f"{k}: serial and pooled gradients differ by {err:.3g}"
