@@ -1008,14 +1008,16 @@ def test_a_parameter_the_data_does_not_move_is_not_significant():
     assert z_score(0.0, 0.0, 0.0) == 0.0
 
 
-def _thrown_cube(spec: str, centre, velocity, observed: int, frames: int = 16, vol=None, **obs_kw):
+def _thrown_cube(spec: str, centre, velocity, observed: int, frames: int = 16, vol=None, *,
+                 precision: str = "float32", **obs_kw):  # fmt: skip
     """(observation, truth model, truth θ): a cube of 64 points thrown at ``velocity`` from ``centre`` and simulated
-    with the effects ``spec`` for ``frames`` frames at 60 fps on 16 cells, its points' volumes ``vol`` (None: equal
-    shares of the cube's); the measurement is that rollout. ``obs_kw``: more fields of the observation."""
+    with the effects ``spec`` for ``frames`` frames at 60 fps on 16 cells in ``precision``, its points' volumes
+    ``vol`` (None: equal shares of the cube's); the measurement is that rollout. ``obs_kw``: more fields of the
+    observation."""
     from causalgs import _ti
     from causalgs.discover.model import PhysicsModel
 
-    _ti.init("cpu", "float32")
+    _ti.init("cpu", precision)
     x0 = _cube(n=4, centre=centre)
     t = np.arange(frames) / 60.0
     vol = np.full(len(x0), 0.12**3 / len(x0)) if vol is None else vol

@@ -19,14 +19,12 @@ SPEC = "gravity;ground:mu=0.3;walls"
 @pytest.fixture(scope="module")
 def bounce():
     """A cube thrown onto a frictional ground (a contact: stiffness and ratio move the points), and its model."""
-    from causalgs import _ti
     from causalgs.discover.model import PhysicsModel
 
-    obs, _, _ = _thrown_cube(SPEC, (0.0, 0.0, 0.1), (0.4, 0.0, -1.0), 10, frames=14)
     # A worker runs its kernels on one thread, this process on a pool of them: atomic sums add in another order.
     # In float32 a rollout then differs by rounding (6e-8 cm measured), which a forward-difference Jacobian or a
     # calibration amplifies past these tests' tolerances; in float64 the workers' rollouts are this process's.
-    _ti.init("cpu", "float64")
+    obs, _, _ = _thrown_cube(SPEC, (0.0, 0.0, 0.1), (0.4, 0.0, -1.0), 10, frames=14, precision="float64")
     m = PhysicsModel(obs, SPEC, ("ground.mu", "ground.d"), res=16)
     return m, m.initial(E=1e5, nu=0.35, effects={"ground.mu": 0.5, "ground.d": 0.005})
 
