@@ -369,3 +369,113 @@ def discover_workers_benchmark(res: int = 43, workers: Iterable[int] = (2,), rep
                "params": len(theta), "workers": n, "serial_s": round(a, 3), "workers_s": round(b, 3),
                "speedup": round(a / b, 3), "first_call_s": round(warm_up, 2), "max_difference_cm": diff,
                "repeats": repeats}  # fmt: skip
+
+
+# -- runs side by side ------------------------------------------------------------------------------------------------
+
+_JOBS_WORK: dict[tuple, Callable[[], object]] = {}
+
+
+def _jobs_work(work: str, res: int, frames: int, fps: float) -> Callable[[], object]:
+    """This process's copy of a piece's unit of work, built (and compiled) once: ``rollout``, one discovery rollout
+    of the ``toss`` landing on a grid of ``res`` cells (as in :func:`discover_benchmark`), or ``render``, one
+    forward+backward pass of the rasterizer over 20k Gaussians at 128² (a fit's step is made of these)."""
+    key = (work, res, frames, fps)
+    if key in _JOBS_WORK:
+        return _JOBS_WORK[key]
+    if work == "rollout":
+        from causalgs.discover.model import PhysicsModel
+        from causalgs.discover.observation import synthesize
+
+        effects = "gravity;ground:mu=0.3;walls"
+        obs = synthesize("toss", effects, seed=0, points=1_000_000, frames=frames, fps=fps, reference_res=res)
+        model = PhysicsModel(obs, effects, (), res=res)
+        theta = model.initial()
+
+        def fn():
+            with torch.no_grad():
+                return model.rollout(theta)
+    elif work == "render":
+        from causalgs import _ti
+        from causalgs.render import rasterize
+
+        dtype = _ti.torch_dtype()
+        cam = bench_camera(128)
+        vm, K = torch.tensor(cam.viewmat, dtype=dtype), torch.tensor(cam.K, dtype=dtype)
+        leaves = {k: t.requires_grad_(True) for k, t in bench_scene(20_000, dtype=dtype).items()}
+        bg = torch.ones(3, dtype=dtype)
+
+        def fn():
+            for t in leaves.values():
+                t.grad = None
+            img, alpha = rasterize(*(leaves[k] for k in KEYS), vm, K, 128, 128, background=bg)[:2]
+            (img.sum() + alpha.sum()).backward()
+    else:
+        raise ValueError(f"unknown work '{work}' (rollout or render)")
+    fn()  # its kernels compiled (or loaded from the offline cache)
+    _JOBS_WORK[key] = fn
+    return fn
+
+
+def jobs_piece(name: str, index: int, work: str, res: int, units: int, frames: int, fps: float) -> dict:
+    """One piece of a :func:`jobs_benchmark`: ``units`` units of ``work`` (see :func:`_jobs_work`), run where the
+    table runs a row (here, or in a process of :func:`causalgs.discover.table.execute`); the seconds they took, the
+    seconds this process first spent building them, and the CPUs and Taichi threads it ran on."""
+    import os
+
+    from causalgs import _ti
+
+    t0 = time.perf_counter()
+    fn = _jobs_work(work, res, frames, fps)
+    setup = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for _ in range(units):
+        fn()
+    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+    return {"case": name, "seed": index, "piece_s": time.perf_counter() - t0, "setup_s": setup, "cpus": cpus,
+            "threads": _ti.runtime().threads, "pid": os.getpid()}  # fmt: skip
+
+
+def jobs_benchmark(jobs: int = 2, pieces: int = 4, work: str = "rollout", res: int = 20, units: int = 5,
+                   cycles: int = 3, frames: int = 30, fps: float = 24.0, log=None) -> dict:
+    """What ``discover-table --jobs`` buys: ``pieces`` equal pieces of work (each ``units`` units of ``work``, see
+    :func:`_jobs_work`) run as a table runs its rows, one after the other in this process on all its CPUs
+    (``--jobs 1``) and ``jobs`` at once, each in a spawned process pinned to its own share of the CPUs
+    (:func:`causalgs.discover.table.execute`, the table's own code), the two in turn ``cycles`` times in one run.
+
+    The record: the median seconds of a piece either way; ``throughput_ratio``, pieces finished per second side by
+    side over one after the other, from those medians (a long row's gain: the processes' start is left out); and
+    ``wall_ratio``, the median wall seconds of all the pieces one after the other over side by side, the processes'
+    start and their loading of the compiled kernels included (they are spawned afresh every cycle)."""
+    from causalgs import _ti
+    from causalgs.discover import table
+
+    log = log or (lambda msg: None)
+    if jobs < 2:
+        raise ValueError(f"jobs = {jobs}: side by side needs at least 2")
+    args = (work, res, units, frames, fps)
+    todo = [("piece", i) for i in range(pieces)]
+
+    def failed(name, index, why):
+        raise RuntimeError(f"piece {index} failed: {why}")
+
+    jobs_piece("warm-up", -1, *args)  # this process's kernels built before its first timed piece
+    serial, side, serial_wall, side_wall = [], [], [], []
+    for cycle in range(cycles):
+        for mode, rows, walls in (("one after the other", serial, serial_wall), (f"{jobs} at once", side, side_wall)):
+            done: list[dict] = []
+            t0 = time.perf_counter()
+            table.execute(todo, 1 if rows is serial else jobs, lambda n, i: jobs_piece(n, i, *args), jobs_piece,
+                          args, failed, done.append, lambda msg: None)  # fmt: skip
+            walls.append(time.perf_counter() - t0)
+            rows.extend(done)
+            log(f"cycle {cycle + 1}/{cycles}, {mode}: {walls[-1]:.1f} s")
+    a, b = statistics.median(r["piece_s"] for r in serial), statistics.median(r["piece_s"] for r in side)
+    wa, wb = statistics.median(serial_wall), statistics.median(side_wall)
+    return {"bench": "jobs", "work": work, "grid": res if work == "rollout" else None, "jobs": jobs,
+            "pieces": pieces, "units": units, "cycles": cycles, "cpus": _ti.allowed_cpus(),
+            "serial_piece_s": round(a, 3), "jobs_piece_s": round(b, 3), "throughput_ratio": round(jobs * a / b, 3),
+            "serial_wall_s": round(wa, 2), "jobs_wall_s": round(wb, 2), "wall_ratio": round(wa / wb, 3),
+            "jobs_setup_s": round(statistics.median(r["setup_s"] for r in side), 2),
+            "serial_threads": serial[0]["threads"], "jobs_threads": side[0]["threads"],
+            "jobs_cpus": sorted({tuple(r["cpus"] or ()) for r in side})}  # fmt: skip

@@ -140,6 +140,40 @@ def discover_bench(grids, repeats, frames, fps, workers, device, precision):
             click.echo(json.dumps(rec))
 
 
+@bench.command(name="jobs")
+@click.option("--jobs", type=click.IntRange(2, 64), default=2, show_default=True,
+              help="Pieces at once, each in a process pinned to its own share of the CPUs "
+                   "($CAUSALGS_TI_CPUS, else all this process may use), as `discover-table --jobs`.")  # fmt: skip
+@click.option("--pieces", type=click.IntRange(1, 256), default=4, show_default=True,
+              help="Equal pieces of work, the table's rows.")  # fmt: skip
+@click.option("--work", type=click.Choice(["rollout", "render"]), default="rollout", show_default=True,
+              help="A piece's unit: rollout, one discovery rollout of the tossed block's landing (on --grid); "
+                   "render, one forward+backward pass of the rasterizer (20k Gaussians, 128²), of which a fit's "
+                   "steps are made.")  # fmt: skip
+@click.option("--grid", type=click.IntRange(8, 64), default=20, show_default=True,
+              help="Rollout work: cells over the scene's box (20: the trajectory table's, 43: the video table's).")
+@click.option("--units", type=click.IntRange(1, 10000), default=5, show_default=True, help="Units per piece.")
+@click.option("--cycles", type=click.IntRange(1, 100), default=3, show_default=True,
+              help="Times the two ways are run, in turn.")  # fmt: skip
+@click.option("--frames", type=click.IntRange(2, 1000), default=30, show_default=True,
+              help="Rollout work: frames of the landing.")  # fmt: skip
+def jobs_bench(jobs, pieces, work, grid, units, cycles, frames):
+    """What `discover-table --jobs` buys on this machine: equal pieces of work run as the table runs its rows, one
+    after the other in this process on all its CPUs and --jobs at once in pinned processes (the table's own code),
+    in turn in one run. Prints one JSON record: the median seconds of a piece either way, throughput_ratio (pieces
+    per second side by side over one after the other, the processes' start left out, as for rows hours long) and
+    wall_ratio (all pieces' wall seconds, the start included). CPU, float32, as the table runs."""
+    from rich.console import Console
+
+    from causalgs import _ti
+    from causalgs.bench import jobs_benchmark
+
+    _ti.init("cpu", "float32")
+    console = Console(stderr=True)
+    rec = jobs_benchmark(jobs, pieces, work, grid, units, cycles, frames, log=console.log)
+    click.echo(json.dumps(rec))
+
+
 @bench.command(name="fit")
 @click.option("--data", "data_root", type=click.Path(file_okay=False), required=True,
               help="Folder with one dataset per scene (e.g. the output of `causalgs synth all`).")  # fmt: skip

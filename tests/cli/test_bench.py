@@ -39,3 +39,40 @@ def test_bench_discover_json(ti32):
     assert rec["bench"] == "discover" and rec["grid"] == 12 and rec["frames"] == 6 and rec["points"] > 10
     assert rec["substeps"] >= 5 and rec["rollout_ms"] > 0
     assert rec["ms_per_substep"] == pytest.approx(rec["rollout_ms"] / rec["substeps"], rel=1e-2)
+
+
+def test_bench_jobs_piece_times_its_units_where_it_runs(ti32):
+    """A piece of `bench jobs` here: its units timed, and the CPUs and Taichi threads it ran on (the discover
+    benchmark's landing, so its kernels are those already built)."""
+    import os
+
+    from causalgs import _ti
+    from causalgs.bench import jobs_piece
+
+    rec = jobs_piece("piece", 3, "rollout", 12, 2, 6, 24.0)
+    assert rec["case"] == "piece" and rec["seed"] == 3 and rec["piece_s"] > 0 and rec["setup_s"] > 0
+    assert rec["threads"] == _ti.runtime().threads and rec["pid"] == os.getpid()
+    assert rec["cpus"] == sorted(os.sched_getaffinity(0))
+    again = jobs_piece("piece", 4, "rollout", 12, 2, 6, 24.0)  # built once per process
+    assert again["setup_s"] < rec["setup_s"]
+
+
+def test_bench_jobs_refuses_one_job():
+    result = CliRunner().invoke(cli, ["bench", "jobs", "--jobs", "1"])
+    assert result.exit_code == 2 and "--jobs" in result.output
+
+
+@pytest.mark.slow
+def test_bench_jobs_runs_pieces_both_ways():
+    """Pieces one after the other here and two at once in pinned processes, as the table runs rows: the record
+    says each way's median piece and the ratios, and the pieces side by side ran on CPUs of their own."""
+    args = ["bench", "jobs", "--pieces", "2", "--units", "1", "--cycles", "1", "--frames", "6", "--grid", "10"]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    (rec,) = [json.loads(line) for line in result.output.splitlines() if line.startswith("{")]
+    assert rec["bench"] == "jobs" and rec["jobs"] == 2 and rec["pieces"] == 2
+    assert rec["serial_piece_s"] > 0 and rec["jobs_piece_s"] > 0 and rec["serial_wall_s"] > 0
+    assert rec["throughput_ratio"] == pytest.approx(2 * rec["serial_piece_s"] / rec["jobs_piece_s"], rel=0.02)
+    assert rec["jobs_threads"] == 1 or len(rec["cpus"] or []) < 2
+    if rec["cpus"] and len(rec["cpus"]) >= 2:
+        assert len(rec["jobs_cpus"]) == 2 and all(len(c) == 1 for c in rec["jobs_cpus"])
