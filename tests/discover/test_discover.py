@@ -229,6 +229,26 @@ def test_table_rows_score_what_was_found_against_what_was_hidden():
     assert "| 4.0 → 0.8 mm (-80%) |" in T.markdown([{**scored, "seed": 0}])
 
 
+def test_a_row_with_two_hidden_effects_needs_both_named_each_with_its_parameter():
+    from causalgs.discover.table import BASE, Case, summary
+    from causalgs.discover.table import score as score_row
+
+    case = Case("force+linear_drag", "hidden", BASE + ";force:b=0.8,0,0;linear_drag:c=0.6", BASE, expect="force",
+                also=("linear_drag",), truth={"force.b[0]": 0.8, "linear_drag.c": 0.6})  # fmt: skip
+    force = {"effect": "force", "params": {"force.b[0]": 0.82}, "interval": {"force.b[0]": [0.75, 0.9]}}
+    drag = _fake_report("linear_drag", 0.57)["discovered"][0]  # interval 0.55..0.59 misses 0.6
+    both = score_row(case, {**_fake_report("linear_drag", 0.57), "discovered": [drag, force]})
+    assert both["expected"] == "force+linear_drag" and both["first_ok"] and both["in_set"]
+    assert math.isclose(both["param_error"], 0.05) and both["interval_covers"] is False  # the drag's 5%, its miss
+    one = score_row(case, {**_fake_report("linear_drag", 0.6), "discovered": [force]})
+    assert not one["first_ok"] and not one["in_set"] and one["param_error"] is None  # the drag not named
+    wrong = score_row(case, {**_fake_report("quadratic_drag", 0.6), "discovered": [
+        _fake_report("quadratic_drag", 0.6)["discovered"][0], force, drag]})  # fmt: skip
+    assert not wrong["first_ok"] and wrong["in_set"] and wrong["param_error"] is None  # first named wrong
+    s = summary([{**both, "seed": 0}, {**one, "seed": 1}])
+    assert s["hidden_first"] == 0.5 and s["hidden_in_set"] == 0.5 and s["param_within_10pct"] == 1.0
+
+
 def test_table_resumes_and_records_failures(tmp_path, monkeypatch):
     import causalgs.discover.table as T
     from causalgs.errors import CausalGSError
