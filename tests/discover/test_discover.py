@@ -230,7 +230,7 @@ def test_table_rows_score_what_was_found_against_what_was_hidden():
 
 
 def test_a_row_with_two_hidden_effects_needs_both_named_each_with_its_parameter():
-    from causalgs.discover.table import BASE, Case, summary
+    from causalgs.discover.table import BASE, BY_NAME, Case, summary
     from causalgs.discover.table import score as score_row
 
     case = Case("force+linear_drag", "hidden", BASE + ";force:b=0.8,0,0;linear_drag:c=0.6", BASE, expect="force",
@@ -247,6 +247,13 @@ def test_a_row_with_two_hidden_effects_needs_both_named_each_with_its_parameter(
     assert not wrong["first_ok"] and wrong["in_set"] and wrong["param_error"] is None  # first named wrong
     s = summary([{**both, "seed": 0}, {**one, "seed": 1}])
     assert s["hidden_first"] == 0.5 and s["hidden_in_set"] == 0.5 and s["param_within_10pct"] == 1.0
+    # the table's own such case: a zero component of the force is scored against the force's size, not η's
+    table_case = BY_NAME["force + damping"]
+    f = {"effect": "force", "params": {"force.b[0]": 0.8, "force.b[1]": 0.04, "force.b[2]": 0.0},
+         "interval": {f"force.b[{i}]": [-1.0, 1.0] for i in range(3)}}  # fmt: skip
+    d = {"effect": "damping", "params": {"damping.eta": 200.0}, "interval": {"damping.eta": [150.0, 250.0]}}
+    row = score_row(table_case, {**_fake_report("force"), "discovered": [d, f]})
+    assert row["first_ok"] and math.isclose(row["param_error"], 0.05) and row["interval_covers"]
 
 
 def test_table_resumes_and_records_failures(tmp_path, monkeypatch):
