@@ -64,7 +64,7 @@ import numpy as np
 
 from causalgs.discover import table
 from causalgs.discover.search import DiscoverConfig
-from causalgs.discover.table import BASE, _failed, _slug, score, summary
+from causalgs.discover.table import BASE, Case, _failed, _slug, score, summary
 from causalgs.errors import CausalGSError
 from causalgs.io import read_json, write_json, write_text
 
@@ -82,6 +82,8 @@ class VideoCase:
     fit_set: tuple[str, ...] = ()
     expect: str | None = None  # as in :class:`causalgs.discover.table.Case`
     truth: dict = field(default_factory=dict)
+    also: tuple[str, ...] = ()  # as in :class:`causalgs.discover.table.Case`
+    expected = Case.expected
 
 
 NO_FRICTION = ("physics.effects='gravity;ground:mu=0.0;walls'", "physics.learn=['ground.d']")
