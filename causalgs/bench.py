@@ -79,6 +79,14 @@ def _median_ms(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
     return first, statistics.median(times)
 
 
+def _forward_backward(render: Callable, leaves: dict[str, torch.Tensor]) -> None:
+    """One forward+backward pass of ``render(leaves)`` (loss = Σ image + Σ alpha), the leaves' gradients fresh."""
+    for t in leaves.values():
+        t.grad = None
+    img, alpha = render(leaves)[:2]
+    (img.sum() + alpha.sum()).backward()
+
+
 def _timings(render: Callable, scene: dict[str, torch.Tensor], repeats: int) -> dict[str, float]:
     """Forward (no grad) and forward+backward (loss = Σ image + Σ alpha) timings of ``render(scene)``."""
     leaves = {k: t.clone().requires_grad_(True) for k, t in scene.items()}
@@ -87,14 +95,8 @@ def _timings(render: Callable, scene: dict[str, torch.Tensor], repeats: int) -> 
         with torch.no_grad():
             return render(scene)
 
-    def forward_backward():
-        for t in leaves.values():
-            t.grad = None
-        img, alpha = render(leaves)[:2]
-        (img.sum() + alpha.sum()).backward()
-
     first_f, fwd = _median_ms(forward, repeats)
-    first_fb, fb = _median_ms(forward_backward, repeats)
+    first_fb, fb = _median_ms(lambda: _forward_backward(render, leaves), repeats)
     return {"forward_ms": fwd, "forward_backward_ms": fb, "first_forward_ms": first_f, "first_fb_ms": first_fb}
 
 
@@ -309,17 +311,27 @@ def sim_compile_benchmark(precision: str = "float32", res: int = 32, effects: st
     return rec
 
 
+LANDING_EFFECTS = "gravity;ground:mu=0.3;walls"  # the hidden-effect table's base physics (discover.table.BASE)
+
+
+def _landing(effects: str, res: int, frames: int, fps: float):
+    """The hidden-effect table's tossed block (seed 0), its landing simulated on a grid of ``res`` cells: the
+    observation the discover benchmarks roll out."""
+    from causalgs.discover.observation import synthesize
+
+    return synthesize("toss", effects, seed=0, points=1_000_000, frames=frames, fps=fps, reference_res=res)
+
+
 def discover_benchmark(resolutions: Iterable[int] = (20, 43), repeats: int = 5, frames: int = 30,
-                       fps: float = 24.0, effects: str = "gravity;ground:mu=0.3;walls") -> Iterable[dict]:
+                       fps: float = 24.0, effects: str = LANDING_EFFECTS) -> Iterable[dict]:
     """One record per grid resolution: the seconds of one discovery rollout (``PhysicsModel.rollout``, no
     gradient) of the hidden-effect table's ``toss`` landing, the truth's particles on the truth's grid, and the
     milliseconds per MPM substep it took. Calibrations are hundreds of these (a forward-difference Jacobian is one
     per parameter), so this is what a discovery's time scales with."""
     from causalgs.discover.model import PhysicsModel
-    from causalgs.discover.observation import synthesize
 
     for res in resolutions:
-        obs = synthesize("toss", effects, seed=0, points=1_000_000, frames=frames, fps=fps, reference_res=res)
+        obs = _landing(effects, res, frames, fps)
         model = PhysicsModel(obs, effects, (), res=res)
         theta = model.initial()
         with torch.no_grad():
@@ -333,7 +345,7 @@ def discover_benchmark(resolutions: Iterable[int] = (20, 43), repeats: int = 5, 
 
 
 def discover_workers_benchmark(res: int = 43, workers: Iterable[int] = (2,), repeats: int = 3, frames: int = 30,
-                               fps: float = 24.0, effects: str = "gravity;ground:mu=0.3;walls") -> Iterable[dict]:
+                               fps: float = 24.0, effects: str = LANDING_EFFECTS) -> Iterable[dict]:
     """One record per worker count: the seconds of one Levenberg–Marquardt Jacobian (a rollout per parameter of the
     ``toss`` landing's model, :func:`~causalgs.discover.calibrate.jacobian`) here and with that many worker
     processes (:mod:`causalgs.discover.workers`), timed in turn in one run, their medians and ratio, and the largest
@@ -341,9 +353,8 @@ def discover_workers_benchmark(res: int = 43, workers: Iterable[int] = (2,), rep
     from causalgs.discover import workers as W
     from causalgs.discover.calibrate import fit_frames, jacobian, positions
     from causalgs.discover.model import PhysicsModel
-    from causalgs.discover.observation import synthesize
 
-    obs = synthesize("toss", effects, seed=0, points=1_000_000, frames=frames, fps=fps, reference_res=res)
+    obs = _landing(effects, res, frames, fps)
     model = PhysicsModel(obs, effects, ("ground.mu", "ground.d"), res=res)
     theta = model.initial(E=3e4)
     fr = fit_frames(model)
@@ -385,11 +396,9 @@ def _jobs_work(work: str, res: int, frames: int, fps: float) -> Callable[[], obj
         return _JOBS_WORK[key]
     if work == "rollout":
         from causalgs.discover.model import PhysicsModel
-        from causalgs.discover.observation import synthesize
 
-        effects = "gravity;ground:mu=0.3;walls"
-        obs = synthesize("toss", effects, seed=0, points=1_000_000, frames=frames, fps=fps, reference_res=res)
-        model = PhysicsModel(obs, effects, (), res=res)
+        obs = _landing(LANDING_EFFECTS, res, frames, fps)
+        model = PhysicsModel(obs, LANDING_EFFECTS, (), res=res)
         theta = model.initial()
 
         def fn():
@@ -406,10 +415,7 @@ def _jobs_work(work: str, res: int, frames: int, fps: float) -> Callable[[], obj
         bg = torch.ones(3, dtype=dtype)
 
         def fn():
-            for t in leaves.values():
-                t.grad = None
-            img, alpha = rasterize(*(leaves[k] for k in KEYS), vm, K, 128, 128, background=bg)[:2]
-            (img.sum() + alpha.sum()).backward()
+            _forward_backward(lambda q: rasterize(*(q[k] for k in KEYS), vm, K, 128, 128, background=bg), leaves)
     else:
         raise ValueError(f"unknown work '{work}' (rollout or render)")
     fn()  # its kernels compiled (or loaded from the offline cache)
@@ -462,13 +468,12 @@ def jobs_benchmark(jobs: int = 2, pieces: int = 4, work: str = "rollout", res: i
     jobs_piece("warm-up", -1, *args)  # this process's kernels built before its first timed piece
     serial, side, serial_wall, side_wall = [], [], [], []
     for cycle in range(cycles):
-        for mode, rows, walls in (("one after the other", serial, serial_wall), (f"{jobs} at once", side, side_wall)):
-            done: list[dict] = []
+        for mode, n, rows, walls in (("one after the other", 1, serial, serial_wall),
+                                     (f"{jobs} at once", jobs, side, side_wall)):  # fmt: skip
             t0 = time.perf_counter()
-            table.execute(todo, 1 if rows is serial else jobs, lambda n, i: jobs_piece(n, i, *args), jobs_piece,
-                          args, failed, done.append, lambda msg: None)  # fmt: skip
+            table.execute(todo, n, lambda name, i: jobs_piece(name, i, *args), jobs_piece, args, failed, rows.append,
+                          lambda msg: None)  # fmt: skip
             walls.append(time.perf_counter() - t0)
-            rows.extend(done)
             log(f"cycle {cycle + 1}/{cycles}, {mode}: {walls[-1]:.1f} s")
     a, b = statistics.median(r["piece_s"] for r in serial), statistics.median(r["piece_s"] for r in side)
     wa, wb = statistics.median(serial_wall), statistics.median(side_wall)

@@ -139,7 +139,7 @@ def score(case: Case, report: dict) -> dict:
     elif case.expect == "unexplained":
         ok = verdict == "unexplained discrepancy"
     else:
-        ok = bool(found) and found[0] in hidden and (not case.also or set(hidden) <= set(found))
+        ok = bool(found) and found[0] in hidden and set(hidden) <= set(found)
     in_set = set(hidden) <= set(found) if case.expect not in ("none", "unexplained") else ok
     err = covered = None
     named = {d["effect"]: d for d in report["discovered"]}

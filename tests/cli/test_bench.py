@@ -41,6 +41,13 @@ def test_bench_discover_json(ti32):
     assert rec["ms_per_substep"] == pytest.approx(rec["rollout_ms"] / rec["substeps"], rel=1e-2)
 
 
+def test_the_benchmarks_landing_is_the_hidden_effect_tables():
+    from causalgs.bench import LANDING_EFFECTS
+    from causalgs.discover.table import BASE
+
+    assert LANDING_EFFECTS == BASE
+
+
 def test_bench_jobs_piece_times_its_units_where_it_runs(ti32):
     """A piece of `bench jobs` here: its units timed, and the CPUs and Taichi threads it ran on (the discover
     benchmark's landing, so its kernels are those already built)."""
