@@ -91,6 +91,10 @@ class Verdict:
     passed: bool
     checks: dict = field(default_factory=dict)
     reasons: list = field(default_factory=list)
+    # Every check of the evidence holds (the held-out drop, the BIC, each new parameter significant and free of its
+    # bounds) and only the floor's do not (4, 5): the candidate explains part of the discrepancy, and something
+    # else is missing beside it (:func:`causalgs.discover.search.pairs`).
+    partial: bool = False
 
 
 def judge(*, base_train: float, base_future: float, train: float, future: float, best_train: float,
@@ -145,6 +149,7 @@ def judge(*, base_train: float, base_future: float, train: float, future: float,
     if loose:
         reasons.append("its interval from every source of error holds the off value: "
                        f"{', '.join(f'{p} ({z_all[p]:.1f} SE)' for p in loose)}")  # fmt: skip
+    evidence = not reasons
     if not floor_ok:
         reasons.append("the refit does not reach the floor (not converged)")
     elif not noise_ok:
@@ -154,4 +159,4 @@ def judge(*, base_train: float, base_future: float, train: float, future: float,
         what = "the noise floor" if future_noise == noise else "what a correct model would"
         reasons.append(f"the refit misses the held-out frames by {math.sqrt(future / future_noise):.1f}× {what} "
                        "(it fits the window, not the law)")
-    return Verdict(not reasons, checks, reasons)
+    return Verdict(not reasons, checks, reasons, partial=evidence and bool(reasons))

@@ -195,7 +195,15 @@ def markdown(report: dict) -> str:
             hint = (f"its signature `{ev['signature']}` explains {_pct(share)} of the residual acceleration"
                     + (" (the smoothed accelerations do not show it; the refit does)"
                        if share is not None and share < SIGNATURE_WEAK else ""))  # fmt: skip
-            L += [f"- **{d['law']}**", "  - evidence: held-out RMS "
+            against = ev.get("against", "base")
+            L += [f"- **{d['law']}**"]
+            if d.get("fitted_with"):
+                L.append(f"  - found together with `{d['fitted_with']}`, fitted jointly: neither passed the gate "
+                         "alone; " + ("this one explained part of the discrepancy by itself, and the pair passes "
+                                      "against the base" if against == "base" else
+                                      f"beside `{against}` this one passes against `{against}` alone, and the pair "
+                                      "against the base"))  # fmt: skip
+            L += ["  - evidence" + ("" if against == "base" else f" (against `{against}` alone)") + ": held-out RMS "
                   f"−{100 * (1 - math.sqrt(max(0.0, 1 - ev['future_drop']))):.0f}%; ΔBIC {ev['delta_bic']:+.1f}; "
                   + "".join(f"{p} at {z:.1f} SE{_all(ev, p)}; " for p, z in ev["z"].items()) + hint]  # fmt: skip
             src = d.get("interval_sources") or {}
@@ -392,14 +400,17 @@ def markdown(report: dict) -> str:
               "|---|---|---|---|---|"]  # fmt: skip
         refits = {r["effect"]: r for r in rnd["refits"]}
         for s in rnd["screen"]:
-            r = refits.get(s["effect"])
-            if r is None:
-                L.append(f"| {s['effect']} | {s['gain']:.3f} | not refitted | | |")
-            elif "error" in r:
-                L.append(f"| {s['effect']} | {s['gain']:.3f} | failed: {r['error']} | no | |")
-            else:
-                L.append(f"| {s['effect']} | {s['gain']:.3f} | {r['future_mse_cm2']:.3g} | "
-                         f"{'yes' if r['passed'] else 'no'} | {'; '.join(r['reasons'])} |")  # fmt: skip
+            L.append(_round_row(s, refits.get(s["effect"])))
+        jt = rnd.get("joint")
+        if jt:
+            L += ["", f"`{jt['lead']}` explained part of the discrepancy and nothing passed alone, so the other "
+                  f"candidates were screened from its refit and refitted jointly with it (both gates: the pair against "
+                  f"the base, the partner against `{jt['lead']}` alone):", "",
+                  f"| with {jt['lead']} | screen gain | refit held-out MSE (cm²) | passed | why not |",
+                  "|---|---|---|---|---|"]  # fmt: skip
+            tried = {r["effect"]: r for r in jt["refits"]}
+            for s in jt["screen"]:
+                L.append(_round_row(s, tried.get(s["effect"])))
         rb = rnd.get("rebased")
         if rb:
             L += ["", f"The model without the candidates, recalibrated from where the `{rb['from']}` refit went, fit "
@@ -433,6 +444,16 @@ def markdown(report: dict) -> str:
     L += ["Plots: `error.png` (error per frame), `residuals.png` (held-out residual heat), `paths.png` (centroids).",
           "", f"Took {report['seconds']:.0f} s."]  # fmt: skip
     return "\n".join(L) + "\n"
+
+
+def _round_row(s: dict, r: dict | None) -> str:
+    """A round table's row: a screened candidate ``s`` and its refit's row ``r`` (None: not refitted)."""
+    if r is None:
+        return f"| {s['effect']} | {s['gain']:.3f} | not refitted | | |"
+    if "error" in r:
+        return f"| {s['effect']} | {s['gain']:.3f} | failed: {r['error']} | no | |"
+    return (f"| {s['effect']} | {s['gain']:.3f} | {r['future_mse_cm2']:.3g} | {'yes' if r['passed'] else 'no'} | "
+            f"{'; '.join(r['reasons'])} |")
 
 
 def _cell(values: dict, key: str) -> str:

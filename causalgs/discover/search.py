@@ -67,6 +67,10 @@ class DiscoverConfig:
     # confusable candidates are compared at convergence, not at wherever the first run stopped.
     polish_within: float = 1.5
     max_effects: int = 2
+    # Where no candidate passes but one explains part of the discrepancy (every check of the evidence holds, only
+    # the floor's do not: ``Verdict.partial``), the others are refitted jointly with it and a pair may pass
+    # (:func:`pairs`): two effects missing at once, neither of which explains everything alone.
+    joint: bool = True
     ambiguity_bic: float = 10.0  # ΔBIC within which two passing candidates are not separated
     # relative held-out error within which two passing candidates tie (beyond it, they still tie where the paired
     # bootstrap of their held-out difference reaches zero)
@@ -235,6 +239,25 @@ def _refit(base: State, s, cfg: DiscoverConfig, journal: Journal, where: str) ->
     st = _state(model, best)
     st.starts = fits
     return st
+
+
+def _polish(refits: list, cfg: DiscoverConfig, journal: Journal, where: str, log) -> list:
+    """``refits`` ((candidate, state) pairs) with those whose fit-window error is within ``cfg.polish_within`` of
+    the best calibrated further, where that fits better: the floor checks compare the contenders with the best, so
+    they are compared at convergence, not wherever their first run stopped."""
+    if not refits:
+        return refits
+    lead, out = min(st.train for _, st in refits), list(refits)
+    for i, (c_i, st_i) in enumerate(out):
+        if st_i.train > cfg.polish_within * lead:
+            continue
+        log(f"  polishing {c_i.key}")
+        polished = journal.calibrate(f"{where}/{c_i.key}/polish", st_i.model, st_i.fit.theta,
+                                     iterations=2 * cfg.iterations)  # fmt: skip
+        if polished.loss < st_i.fit.loss:
+            out[i] = (c_i, _state(st_i.model, polished))
+            out[i][1].starts = st_i.starts
+    return out
 
 
 # Units of a plane's height (1 cm) either side of its starts that the scans of a candidate added to the base's own
@@ -946,6 +969,99 @@ def pick_finalists(screened, signatures: dict, cfg: DiscoverConfig, elastic_pinn
     return out
 
 
+def joint(a: Candidate, b: Candidate) -> Candidate:
+    """Candidates ``a`` and ``b`` fitted together, as one entry of the gate's choice and of an ambiguity set."""
+    return Candidate(f"{a.key}+{b.key}", f"{a.title} with {b.title}", f"{a.law}; {b.law}", b.effect,
+                     a.params + b.params, a.probe + b.probe, b.driver)  # fmt: skip
+
+
+def _gate(st: State, cands, base: State, *, best_train: float, n_eff: int, floor_coord: float, cfg: DiscoverConfig,
+          unc: dict):  # fmt: skip
+    """The gate's verdict on ``st``, a refit with the candidates ``cands`` added to ``base`` (its model without
+    them); ``unc``: the refit's uncertainty (:func:`_uncertainty`). A structural candidate's parameters (the plane
+    offset of sticky ground) count in the BIC but are not tested for significance: they change a base term."""
+    params = [p for c in cands for p in c.params]
+    sub = {p: unc[p] for c in cands if c.replaces is None for p in c.params}
+    z, z_all = (significance(sub), significance(sub, every_source=True)) if sub else ({}, {})
+    return judge(base_train=base.train, base_future=base.future, train=st.train, future=st.future,
+                 best_train=best_train, k_new=len(params), n_eff=n_eff, k_base=len(base.model.knobs), z=z,
+                 z_all=z_all, cfg=cfg.gate, noise=(floor_coord / UNIT) ** 2,
+                 window_noise=window_floor(st, floor_coord), future_noise=held_out_floor(st, floor_coord),
+                 pinned=st.model.pinned(st.fit.theta, params))  # fmt: skip
+
+
+def _refit_row(key: str, st: State, v, unc: dict) -> dict:
+    """A refit and its verdict as the report's round lists it."""
+    return {"effect": key, "train_mse_cm2": st.train, "future_mse_cm2": st.future, "passed": v.passed,
+            "checks": v.checks, "reasons": v.reasons, "params": _public(unc),
+            "values": st.model.values(st.fit.theta)}  # fmt: skip
+
+
+def pairs(current: State, lead: tuple, pool: list, obs: Observation, cfg: DiscoverConfig, journal: Journal,
+          where: str, log, *, best_train: float, n_eff: int, floor_coord: float, entry: dict, parts: dict,
+          tried: list) -> list:  # fmt: skip
+    """The candidates of ``pool`` refitted jointly with ``lead`` ((candidate, state, uncertainty, verdict)), a refit
+    that explains part of the discrepancy (``Verdict.partial``) but not all of it: two effects missing at once. Each
+    gate checks one candidate against a model without it, so with two missing neither passes alone: on a landing
+    with a uniform force and material damping both hidden (the trajectory table, seed 0), damping's refit cut the
+    held-out error from 9.2 to 3.7 cm², significant, but missed the held-out frames by 4.2× what a correct model
+    would, and the force alone (0.9 SE) raised it.
+
+    From the lead's refit the remaining candidates are screened and refitted as a round after it would be (the
+    lead's parameters free in every refit), and a pair passes only where both gates pass: the pair against
+    ``current`` (both effects' parameters significant, the BIC with both counted, the floor reached) and the
+    partner against the lead alone (its own held-out drop, BIC and significance). Returns the passing pairs as
+    (joint candidate, state, uncertainty, verdict); ``entry`` (the round's record) gains ``joint``, what was tried,
+    ``parts`` maps each passing pair's key to (lead, partner, the partner's verdict against the lead alone) and
+    ``tried`` gains every partner's refit, (candidate, state)."""
+    a, st_a = lead[0], lead[1]
+    partners = [c for c in pool if c.key != a.key and c.applies(st_a.model.effects, st_a.model.learn, {a.effect})]
+    rec: dict = {"lead": a.key, "screen": [], "finalists": [], "refits": []}
+    entry["joint"] = rec
+    if not partners:
+        return []
+    at = f"{where}/with {a.key}"
+    log(f"  {a.key} explains part of the discrepancy: screening {', '.join(c.key for c in partners)} beside it")
+    keys, theta = [c.key for c in partners], st_a.fit.theta
+    kept = journal.screened(f"{at}/screen", theta, keys)
+    if kept is None:
+        screened = screen(st_a.model, theta, partners, fit_frames(st_a.model))
+        journal.keep_screen(f"{at}/screen", theta, keys, screen_rows(screened))
+    else:
+        screened = restore(st_a.model, theta, partners, kept)
+    sig = current_signatures(st_a, obs)
+    elastic = list(st_a.model.pinned(theta, [k.name for k in st_a.model.knobs if k.kind in ("E", "nu")]))
+    finalists = pick_finalists(screened, sig, cfg, elastic)
+    rec["screen"] = [{"effect": s.candidate.key, "gain": s.gain, "step": s.step,
+                      "signature_share": sig.get(s.candidate.driver)} for s in screened]  # fmt: skip
+    rec["finalists"] = [s.candidate.key for s in finalists]
+    refits = []
+    for s in finalists:
+        log(f"  refitting {a.key} with {s.candidate.key}")
+        try:
+            refits.append((s.candidate, _refit(st_a, s, cfg, journal, at)))
+        except CausalGSError as e:
+            rec["refits"].append({"effect": s.candidate.key, "error": str(e)})
+    refits = _polish(refits, cfg, journal, at, log)
+    tried += refits
+    best = min([best_train, *(st.train for _, st in refits)])
+    out = []
+    for b, st in refits:
+        c = joint(a, b)
+        unc = _uncertainty(st, c.params, cfg, floor=floor_coord)
+        kw = dict(best_train=best, n_eff=n_eff, floor_coord=floor_coord, cfg=cfg, unc=unc)
+        v, v_b = _gate(st, (a, b), current, **kw), _gate(st, (b,), st_a, **kw)
+        row = _refit_row(b.key, st, v, unc)
+        row["passed"] = v.passed and v_b.passed
+        row["reasons"] = v.reasons + [f"against {a.key} alone: {r}" for r in v_b.reasons if r not in v.reasons]
+        row["checks_against_lead"] = v_b.checks
+        rec["refits"].append(row)
+        if row["passed"]:
+            out.append((c, st, unc, v))
+            parts[c.key] = (a, b, v_b)
+    return out
+
+
 def current_signatures(state: State, obs: Observation) -> dict:
     """Residual signatures of a (repaired) model's rollout over its fit window, as in the disagreement map."""
     fr = fit_frames(state.model)
@@ -1025,6 +1141,52 @@ def _law(c: Candidate, unc: dict) -> str:
         short = p.split(".", 1)[1]
         parts.append(f"{short} = {u['value']:.4g} [{u['interval'][0]:.4g}, {u['interval'][1]:.4g}]")
     return f"{c.title}: {c.law}, " + ", ".join(parts)
+
+
+def _rows(entry: dict) -> list:
+    """The round's refit rows in the order of its refits (a refit that failed has no row and no state)."""
+    return [r for r in entry["refits"] if "error" not in r]
+
+
+def _found(c: Candidate, v, *, st: State, unc: dict, sig: dict, before: State, rest_sigma: float,
+           shape_resolution: float, runners_up, apart: dict, fitted_with: str | None = None,
+           against: str | None = None) -> dict:  # fmt: skip
+    """The report's entry of a discovered candidate ``c``: its law and interval (from ``unc``, the accepted refit
+    ``st``'s widened uncertainty), the evidence of its verdict ``v`` (against ``before``, or the candidate named
+    ``against`` where it was judged against a refit of that one alone), the runners-up ((key, state, refit row),
+    told apart as ``apart`` says) and the base before and after. ``fitted_with``: the candidate it was refitted
+    jointly with, where neither passes alone (:func:`pairs`)."""
+    sub = {p: unc[p] for p in c.params}
+    out = {
+        "effect": c.key,
+        "title": c.title,
+        "law": _law(c, unc),
+        "params": {p: unc[p]["value"] for p in c.params},
+        "interval": {p: unc[p]["interval"] for p in c.params},
+        # the interval's sources: the residuals' bootstrap, the rest shape's error (its size, m), refit starts
+        "interval_sources": {"se_noise": {p: unc[p].get("se_noise") for p in c.params},
+                             "se_rest_shape": {p: unc[p].get("se_rest_shape") for p in c.params},
+                             "se_tracking": {p: unc[p].get("se_tracking") for p in c.params},
+                             "rest_shape_error_m": rest_sigma,
+                             "shape_resolution_m": shape_resolution,
+                             "starts_within": min(unc[p]["starts_within"] for p in c.params)},
+        "evidence": {"signature": c.driver, "signature_share": sig.get(c.driver),
+                     "future_drop": v.checks["future_drop"], "delta_bic": v.checks["delta_bic"],
+                     "z": significance(sub), "z_all": significance(sub, every_source=True),
+                     "against": against or "base"},
+        "runners_up": [{"effect": key, "passed": r["passed"], "future_mse_cm2": r["future_mse_cm2"],
+                        "delta_bic": r["checks"]["delta_bic"], "future_gap_cm2": future_gap(st, o_st),
+                        "told_apart_by": apart.get(key)} for key, o_st, r in runners_up],
+        "base_before": before.model.values(before.fit.theta),
+        "base_after": st.model.values(st.fit.theta),
+        # base parameters the refit holds at an end of their range: the named values trade against them, and
+        # the interval, which moves the free parameters only, holds given them
+        "at_bounds": {p: side for p, side in st.model.pinned(st.fit.theta).items() if p not in unc},
+        "spec": st.model.spec_at(st.fit.theta),
+    }  # fmt: skip
+    if fitted_with is not None:
+        out["fitted_with"] = fitted_with
+    return out
 
 
 def discover(obs: Observation, spec: str, learn=(), *, candidates=None, config: DiscoverConfig | None = None,
@@ -1115,6 +1277,8 @@ def _discover(obs: Observation, spec: str, learn, *, candidates, cfg: DiscoverCo
     current = base
     best_train = base.train
     for round_ in range(cfg.max_effects):
+        if len(report["discovered"]) >= cfg.max_effects:  # a pair found in one round counts as two
+            break
         changed = {BY_KEY[d["effect"]].effect for d in report["discovered"]}
         pool = [c for c in pool if c.applies(current.model.effects, current.model.learn, changed)]
         if not pool:
@@ -1159,17 +1323,7 @@ def _discover(obs: Observation, spec: str, learn, *, candidates, cfg: DiscoverCo
                 entry["refits"].append({"effect": s.candidate.key, "error": str(e)})
                 continue
             refits.append((s.candidate, st))
-        if refits:  # polish the contenders before judging them: the floor checks compare them with the best
-            lead = min(st.train for _, st in refits)
-            for i, (c_i, st_i) in enumerate(refits):
-                if st_i.train > cfg.polish_within * lead:
-                    continue
-                log(f"  polishing {c_i.key}")
-                polished = journal.calibrate(f"{where}/{c_i.key}/polish", st_i.model, st_i.fit.theta,
-                                             iterations=2 * cfg.iterations)
-                if polished.loss < st_i.fit.loss:
-                    refits[i] = (c_i, _state(st_i.model, polished))
-                    refits[i][1].starts = st_i.starts
+        refits = _polish(refits, cfg, journal, where, log)
         rebased, origin = _rebase(current, refits, cfg, journal, where, log)
         if rebased is not current:  # the model without the candidates fits better from where a refit went
             entry["rebased"] = {"from": origin, "train_before_cm2": current.train,
@@ -1186,24 +1340,20 @@ def _discover(obs: Observation, spec: str, learn, *, candidates, cfg: DiscoverCo
         for _, st in refits:
             best_train = min(best_train, st.train)
         n_eff = effective_n(len(fit_frames(current.model)), obs.bodies, obs.points, cfg.gate.clusters_per_body)
-        passed = []
+        judged = []
         for c, st in refits:
             unc = _uncertainty(st, c.params, cfg, floor=floor_coord)
-            z, z_all = significance(unc), significance(unc, every_source=True)
-            if c.replaces is not None:  # structural: the plane offset is not a new parameter of interest
-                z = z_all = {}
-            v = judge(base_train=current.train, base_future=current.future, train=st.train, future=st.future,
-                      best_train=best_train, k_new=len(c.params), n_eff=n_eff,
-                      k_base=len(current.model.knobs), z=z, z_all=z_all, cfg=cfg.gate,
-                      noise=(floor_coord / UNIT) ** 2, window_noise=window_floor(st, floor_coord),
-                      future_noise=held_out_floor(st, floor_coord),
-                      pinned=st.model.pinned(st.fit.theta, c.params))  # fmt: skip
-            res = {"effect": c.key, "train_mse_cm2": st.train, "future_mse_cm2": st.future, "passed": v.passed,
-                   "checks": v.checks, "reasons": v.reasons, "params": _public(unc),
-                   "values": st.model.values(st.fit.theta)}  # fmt: skip
-            entry["refits"].append(res)
-            if v.passed:
-                passed.append((c, st, unc, v))
+            v = _gate(st, (c,), current, best_train=best_train, n_eff=n_eff, floor_coord=floor_coord, cfg=cfg, unc=unc)
+            entry["refits"].append(_refit_row(c.key, st, v, unc))
+            judged.append((c, st, unc, v))
+        passed = [t for t in judged if t[3].passed]
+        parts: dict = {}  # a passing pair's key: (lead, partner, the partner's verdict against the lead alone)
+        pair_refits: list = []  # every partner refitted beside the lead, (candidate, state)
+        leads = sorted((t for t in judged if t[3].partial), key=lambda t: t[1].train)
+        if not passed and leads and cfg.joint and len(report["discovered"]) + 2 <= cfg.max_effects:
+            passed = pairs(current, leads[0], pool, obs, cfg, journal, where, log, best_train=best_train,
+                           n_eff=n_eff, floor_coord=floor_coord, entry=entry, parts=parts,
+                           tried=pair_refits)  # fmt: skip
         log(f"round {round_ + 1}: " + (f"passed the gate: {', '.join(p[0].key for p in passed)}" if passed
                                        else "nothing passed the gate"))  # fmt: skip
         if not passed:
@@ -1233,38 +1383,23 @@ def _discover(obs: Observation, spec: str, learn, *, candidates, cfg: DiscoverCo
         # the bootstrap's alone), then any refit start the data cannot tell from the best.
         rest_sigma = rest_shape_error(st, obs, floor_coord, sigma)
         unc = widen(_uncertainty(st, c.params, cfg, rest_sigma=rest_sigma), st, n_eff)
-        scores = {r["effect"]: r for r in entry["refits"] if "error" not in r}
         # how each other passer was told apart: on the held-out frames, or (tied there) by the fit window's BIC
         lowest = min(passed, key=lambda t: t[1].future)
         apart = {p[0].key: "fit window" if _future_close(lowest, p, cfg) else "held-out frames" for p in passed}
-        report["discovered"].append({
-            "effect": c.key,
-            "title": c.title,
-            "law": _law(c, unc),
-            "params": {p: unc[p]["value"] for p in c.params},
-            "interval": {p: unc[p]["interval"] for p in c.params},
-            # the interval's sources: the residuals' bootstrap, the rest shape's error (its size, m), refit starts
-            "interval_sources": {"se_noise": {p: unc[p].get("se_noise") for p in c.params},
-                                 "se_rest_shape": {p: unc[p].get("se_rest_shape") for p in c.params},
-                                 "se_tracking": {p: unc[p].get("se_tracking") for p in c.params},
-                                 "rest_shape_error_m": rest_sigma,
-                                 "shape_resolution_m": report["shape_resolution_m"],
-                                 "starts_within": min(unc[p]["starts_within"] for p in c.params)},
-            "evidence": {"signature": c.driver, "signature_share": sig.get(c.driver),
-                         "future_drop": v.checks["future_drop"], "delta_bic": v.checks["delta_bic"],
-                         "z": significance(unc), "z_all": significance(unc, every_source=True)},
-            "runners_up": [{"effect": o.key, "passed": scores[o.key]["passed"],
-                            "future_mse_cm2": scores[o.key]["future_mse_cm2"],
-                            "delta_bic": scores[o.key]["checks"]["delta_bic"],
-                            "future_gap_cm2": future_gap(st, o_st), "told_apart_by": apart.get(o.key)}
-                           for o, o_st in refits if o.key != c.key and o.key in scores],
-            "base_before": current.model.values(current.fit.theta),
-            "base_after": st.model.values(st.fit.theta),
-            # base parameters the refit holds at an end of their range: the named values trade against them, and
-            # the interval, which moves the free parameters only, holds given them
-            "at_bounds": {p: side for p, side in st.model.pinned(st.fit.theta).items() if p not in c.params},
-            "spec": st.model.spec_at(st.fit.theta),
-        })  # fmt: skip
+        found = dict(st=st, unc=unc, sig=sig, before=current, rest_sigma=rest_sigma,
+                     shape_resolution=report["shape_resolution_m"])  # fmt: skip
+        if c.key in parts:  # two effects that pass only together: each named with its own evidence
+            a, b, v_b = parts[c.key]
+            tried = {r["effect"]: r for r in entry["joint"]["refits"] if "error" not in r}
+            others = [(f"{a.key}+{o.key}", o_st, tried[o.key]) for o, o_st in pair_refits
+                      if o.key != b.key and o.key in tried]  # fmt: skip
+            singles = [(o.key, o_st, r) for (o, o_st), r in zip(refits, _rows(entry), strict=True) if o.key != a.key]
+            report["discovered"] += [_found(a, v, runners_up=singles, apart={}, fitted_with=b.key, **found),
+                                     _found(b, v_b, runners_up=others, apart=apart, fitted_with=a.key,
+                                            against=a.key, **found)]  # fmt: skip
+        else:
+            scored = [(o.key, o_st, r) for (o, o_st), r in zip(refits, _rows(entry), strict=True) if o.key != c.key]
+            report["discovered"].append(_found(c, v, runners_up=scored, apart=apart, **found))
         current = st
     if report["ambiguous"]:
         report["verdict"] = "ambiguous"

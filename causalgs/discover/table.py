@@ -53,7 +53,7 @@ class Case:
     model: str  # effects of the model discover starts from
     learn: tuple[str, ...] = ("ground.mu",)
     expect: str | None = None  # the candidate that should be named ("none": no missing effect; "unexplained")
-    also: tuple[str, ...] = ()  # further hidden effects, each to be named in a round of its own (any order)
+    also: tuple[str, ...] = ()  # further hidden effects, each to be named (any order, any round)
     truth: dict = field(default_factory=dict)  # fitted parameter name -> true value
     rest_noise: float = 0.0  # m, on the first frame (a noisy reconstructed rest shape)
     velocity_start: float = 1.0  # the base calibration starts from this multiple of the true initial velocity
@@ -129,8 +129,8 @@ def _start(case: Case, obs: Observation) -> tuple[dict | None, tuple[float, ...]
 
 def score(case: Case, report: dict) -> dict:
     """The row of one run: what was found against what was expected. Where several effects were hidden
-    (``case.also``), the first named must be one of them and every one must be named (each its own round, in any
-    order); the parameter error is the largest over all of them."""
+    (``case.also``), the first named must be one of them and every one must be named (in any order, in rounds of
+    their own or together, as a pair fitted jointly); the parameter error is the largest over all of them."""
     found = [d["effect"] for d in report["discovered"]] or [a["effect"] for a in report["ambiguous"]]
     verdict = report["verdict"]
     hidden = (case.expect, *case.also)
