@@ -1365,7 +1365,8 @@ def _discover(obs: Observation, spec: str, learn, *, candidates, cfg: DiscoverCo
         top, ties = choose(passed, cfg)
         if ties:
             report["ambiguous"] = [
-                {"effect": c.key, "law": _law(c, unc), "future_mse_cm2": st.future,
+                {"effect": c.key, "effects": [e.key for e in parts[c.key][:2]] if c.key in parts else [c.key],
+                 "law": _law(c, unc), "future_mse_cm2": st.future,
                  "delta_bic": v.checks["delta_bic"], "future_gap_cm2": future_gap(top[1], st)}
                 for c, st, unc, v in [top, *ties]
             ]  # fmt: skip

@@ -131,7 +131,9 @@ def score(case: Case, report: dict) -> dict:
     """The row of one run: what was found against what was expected. Where several effects were hidden
     (``case.also``), the first named must be one of them and every one must be named (in any order, in rounds of
     their own or together, as a pair fitted jointly); the parameter error is the largest over all of them."""
-    found = [d["effect"] for d in report["discovered"]] or [a["effect"] for a in report["ambiguous"]]
+    # an ambiguity set's entry may be a pair fitted jointly: its effects, each by name
+    found = [d["effect"] for d in report["discovered"]] or [e for a in report["ambiguous"]
+                                                            for e in a.get("effects", [a["effect"]])]  # fmt: skip
     verdict = report["verdict"]
     hidden = (case.expect, *case.also)
     if case.expect == "none":

@@ -289,6 +289,11 @@ def test_a_row_with_two_hidden_effects_needs_both_named_each_with_its_parameter(
     d = {"effect": "damping", "params": {"damping.eta": 200.0}, "interval": {"damping.eta": [150.0, 250.0]}}
     row = score_row(table_case, {**_fake_report("force"), "discovered": [d, f]})
     assert row["first_ok"] and math.isclose(row["param_error"], 0.05) and row["interval_covers"]
+    # an ambiguity set of pairs fitted jointly: each pair's effects count by name, the top pair's lead first
+    amb = [{"effect": "damping+force", "effects": ["damping", "force"]},
+           {"effect": "damping+linear_drag", "effects": ["damping", "linear_drag"]}]  # fmt: skip
+    row = score_row(table_case, {**_fake_report(None, verdict="ambiguous"), "ambiguous": amb})
+    assert row["found"] == ["damping", "force", "damping", "linear_drag"] and row["first_ok"] and row["in_set"]
 
 
 def test_table_resumes_and_records_failures(tmp_path, monkeypatch):
