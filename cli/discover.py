@@ -110,6 +110,11 @@ def _starts(text: str) -> tuple[float, ...]:
                    "auto, where rigid tracks are chosen), else the base fit's departure from rigid motion; 'base': "
                    "the base fit's departure always (a stiff base, calibrated without the missing effect, barely "
                    "deforms and weighs little).")  # fmt: skip
+@click.option("--joint/--no-joint", default=True, show_default=True,
+              help="Where no candidate passes alone but one explains part of the discrepancy (every check but the "
+                   "floor's), screen the others from its refit and refit them jointly with it: two effects missing "
+                   "at once, named together where the pair passes against the base and the partner against the "
+                   "lead alone. A pair counts as two of --max-effects.")
 @click.option("--workers", type=click.IntRange(0, 256), default=0,
               help="Processes the independent rollouts of every calibration run in (a Jacobian's columns, a scan's "
                    "grid points, a step's damping trials), each on a CPU of its own; the results do not depend on "
@@ -121,7 +126,7 @@ def _starts(text: str) -> tuple[float, ...]:
                    "same.")  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print report.json to stdout.")
 def discover(source, out, spec, learn, candidates, max_effects, res, starts, iterations, tracking, lens, split, stretch,
-             weigh, weigh_by, workers, precision, resume, as_json):  # fmt: skip
+             weigh, weigh_by, joint, workers, precision, resume, as_json):  # fmt: skip
     """Find where simulation and measurement disagree, name the missing physical effect, add it, show the gap shrink.
 
     SOURCE is a fitted run folder (`causalgs fit`: the measurement is the tracked motion of its particles over the
@@ -140,7 +145,9 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     body deforms) and misses the held-out frames by at most 3x what a correct model would (its own
     window error, at most the floor, with the window's noise, the bodies' extent and the rigid tracks' error where
     the bodies deform carried forward). Among
-    passers, the held-out frames choose first and BIC among those they do not tell apart.
+    passers, the held-out frames choose first and BIC among those they do not tell apart. Where nothing passes
+    alone but one candidate explains part of the discrepancy, the others are refitted jointly with it (--joint),
+    and a pair that passes is named as two effects.
 
     \b
     Verdicts: the named effect(s) with their law and 95% interval (the residuals' block bootstrap, the rest shape's
@@ -168,7 +175,7 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     if 0 < res < 8:
         raise CausalGSError(f"--res {res}: give 0 (a run's own grid) or at least 8 cells")
     cfg = DiscoverConfig(res=res, starts=_starts(starts), iterations=iterations, max_effects=max_effects,
-                         weigh=weigh, weigh_by=weigh_by, workers=workers or _cpus())  # fmt: skip
+                         weigh=weigh, weigh_by=weigh_by, joint=joint, workers=workers or _cpus())  # fmt: skip
     _ti.init("cpu", precision, quiet=True)
     from causalgs.progress import progress_bar
 
