@@ -79,8 +79,8 @@ CASES: tuple[Case, ...] = (
     Case("sticky", "pair", "gravity;ground_sticky;walls", BASE, expect="sticky"),
     Case("plasticity", "hidden", BASE + ";plasticity:yield_stress=1500", BASE, expect="plasticity",
          truth={"plasticity.yield_stress": 1500.0}),
-    # Two hidden at once: each must be named in a round of its own (the force shows in flight, the viscosity at
-    # the landing; measured in release 74: neither alone reached the floor, so nothing passed the gate)
+    # Two hidden at once: both must be named (the force shows in flight, the viscosity at the landing; in release
+    # 74 neither alone reached the floor and nothing passed; since release 75 found together by the joint refit)
     Case("force + damping", "hidden", BASE + ";force:b=0.8,0.0,0.0;damping:eta=200", BASE, expect="force",
          also=("damping",), truth={"force.b[0]": 0.8, "force.b[1]": 0.0, "force.b[2]": 0.0, "damping.eta": 200.0}),
     Case("control: clean", "control", BASE, BASE, expect="none"),
