@@ -965,6 +965,13 @@ def test_gate_statistics():
     no_future = judge(base_train=4.0, base_future=9.0, train=1.0, future=8.5, best_train=1.0, k_new=1, n_eff=300,
                       k_base=8, z={"c": 8.0}, cfg=cfg)  # fmt: skip
     assert not no_future.passed
+    # Partial: every check of the evidence holds and only the floor's fail (it explains part of the discrepancy,
+    # and a joint refit looks for what else is missing); a pass, or a failed check of the evidence, is not partial.
+    assert missed.partial and beyond.partial and not carried.partial and not ok.partial
+    assert judge(train=2.2, best_train=1.0, noise=1.6, **near).partial  # above the floor, all else holds
+    assert not weak.partial and not loose.partial and not held.partial and not no_future.partial
+    part_weak = judge(train=1.0, best_train=1.0, noise=1.6, **dict(far, future=15.0, z={"c": 1.0}))
+    assert not part_weak.partial and len(part_weak.reasons) == 2  # weak and far: no lead
 
 
 def test_the_held_out_floor_follows_the_tracks_own_error():
