@@ -197,6 +197,11 @@ def markdown(report: dict) -> str:
                        if share is not None and share < SIGNATURE_WEAK else ""))  # fmt: skip
             against = ev.get("against", "base")
             L += [f"- **{d['law']}**"]
+            was = d.get("found_as")
+            if was:
+                later = ", ".join(f"`{e}`" for e in d["refitted_with"])
+                L.append(f"  - as the repaired model holds it, refitted with {later} found after it; when found: "
+                         f"{was['law'].split(': ', 1)[-1]}")  # fmt: skip
             if d.get("fitted_with"):
                 L.append(f"  - found together with `{d['fitted_with']}`, fitted jointly: neither passed the gate "
                          "alone; " + ("this one explained part of the discrepancy by itself, and the pair passes "

@@ -138,6 +138,33 @@ def test_two_effects_missing_at_once_are_found_together(ti32_runtime, tmp_path):
     assert "found together with `linear_drag`, fitted jointly" in md and "| with force |" in md
 
 
+def test_an_effect_found_earlier_is_quoted_as_the_repaired_model_holds_it(ti32_runtime):
+    """A later round refits the earlier effects' parameters with its own: the report quotes them at the repaired
+    model (with an interval there), keeps what their round found, and leaves the latest round's entry as it is."""
+    from causalgs.discover.calibrate import Fit
+    from causalgs.discover.model import PhysicsModel
+    from causalgs.discover.search import _state, requote
+
+    obs = _throw(C_TRUE, b=(0.0, 1.5, 0.0))
+    model = PhysicsModel(obs, "gravity;walls;linear_drag:c=1.4;force:b=0.0,1.5,0.0",
+                         ("linear_drag.c", "force.b[0]", "force.b[1]", "force.b[2]"), res=CFG.res)  # fmt: skip
+    final = _state(model, Fit(model.initial(E=3e4), 0.0, 0, 3e4))
+    spec = model.spec_at(final.fit.theta)
+    old = {"effect": "linear_drag", "spec": "gravity;walls;linear_drag:c=2.9", "params": {"linear_drag.c": 2.9},
+           "interval": {"linear_drag.c": [2.5, 3.3]}, "law": "linear drag: a = −c·v, c = 2.9 [2.5, 3.3]",
+           "interval_sources": {"shape_resolution_m": 0.0}, "at_bounds": {}}  # fmt: skip
+    new = {"effect": "force", "spec": spec, "params": {"force.b[1]": 1.5}, "law": "kept"}
+    found = [old, dict(new)]
+    requote(found, final, obs, CFG, NOISE, NOISE)
+    c = found[0]["params"]["linear_drag.c"]
+    assert c == pytest.approx(model.values(final.fit.theta)["linear_drag.c"]) and abs(c - 1.4) < 1e-4
+    lo, hi = found[0]["interval"]["linear_drag.c"]
+    assert lo < c < hi and [lo, hi] != [2.5, 3.3]  # the repaired model's interval, not the round's
+    assert found[0]["found_as"]["params"] == {"linear_drag.c": 2.9} and found[0]["refitted_with"] == ["force"]
+    assert found[0]["spec"] == spec and found[0]["law"].startswith("linear drag: a = −c·v, c = 1.4")
+    assert found[1] == new  # the latest round's own entry is untouched
+
+
 def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_path, monkeypatch):
     obs = _throw(C_TRUE)
     obs.save(tmp_path / "obs.npz")
