@@ -969,6 +969,29 @@ def pick_finalists(screened, signatures: dict, cfg: DiscoverConfig, elastic_pinn
     return out
 
 
+def _screened(state: State, pool: list, journal: Journal, name: str) -> list:
+    """The screen of ``pool`` from ``state``'s fit, kept in (and found again from) the journal under ``name``."""
+    keys, theta = [c.key for c in pool], state.fit.theta
+    kept = journal.screened(name, theta, keys)
+    if kept is not None:
+        return restore(state.model, theta, pool, kept)
+    screened = screen(state.model, theta, pool, fit_frames(state.model))
+    journal.keep_screen(name, theta, keys, screen_rows(screened))
+    return screened
+
+
+def _elastic_pinned(state: State) -> list:
+    """The stiffnesses and Poisson ratios ``state``'s fit holds at a bound of their range (their names)."""
+    m = state.model
+    return list(m.pinned(state.fit.theta, [k.name for k in m.knobs if k.kind in ("E", "nu")]))
+
+
+def _screen_record(screened: list, sig: dict) -> list:
+    """A screen as the report's round lists it: each candidate's gain, predicted step and signature share."""
+    return [{"effect": s.candidate.key, "gain": s.gain, "step": s.step, "signature_share": sig.get(s.candidate.driver)}
+            for s in screened]  # fmt: skip
+
+
 def joint(a: Candidate, b: Candidate) -> Candidate:
     """Candidates ``a`` and ``b`` fitted together, as one entry of the gate's choice and of an ambiguity set."""
     return Candidate(f"{a.key}+{b.key}", f"{a.title} with {b.title}", f"{a.law}; {b.law}", b.effect,
@@ -1022,18 +1045,10 @@ def pairs(current: State, lead: tuple, pool: list, obs: Observation, cfg: Discov
         return []
     at = f"{where}/with {a.key}"
     log(f"  {a.key} explains part of the discrepancy: screening {', '.join(c.key for c in partners)} beside it")
-    keys, theta = [c.key for c in partners], st_a.fit.theta
-    kept = journal.screened(f"{at}/screen", theta, keys)
-    if kept is None:
-        screened = screen(st_a.model, theta, partners, fit_frames(st_a.model))
-        journal.keep_screen(f"{at}/screen", theta, keys, screen_rows(screened))
-    else:
-        screened = restore(st_a.model, theta, partners, kept)
+    screened = _screened(st_a, partners, journal, f"{at}/screen")
     sig = current_signatures(st_a, obs)
-    elastic = list(st_a.model.pinned(theta, [k.name for k in st_a.model.knobs if k.kind in ("E", "nu")]))
-    finalists = pick_finalists(screened, sig, cfg, elastic)
-    rec["screen"] = [{"effect": s.candidate.key, "gain": s.gain, "step": s.step,
-                      "signature_share": sig.get(s.candidate.driver)} for s in screened]  # fmt: skip
+    finalists = pick_finalists(screened, sig, cfg, _elastic_pinned(st_a))
+    rec["screen"] = _screen_record(screened, sig)
     rec["finalists"] = [s.candidate.key for s in finalists]
     refits = []
     for s in finalists:
@@ -1332,21 +1347,12 @@ def _discover(obs: Observation, spec: str, learn, *, candidates, cfg: DiscoverCo
         # the journal's name of this round: its number and the effects accepted before it (the model it starts from)
         accepted = [d["effect"] for d in report["discovered"]]
         where = f"round {round_ + 1}" + (f" after {'+'.join(accepted)}" if accepted else "")
-        keys, theta = [c.key for c in pool], current.fit.theta
-        kept = journal.screened(f"{where}/screen", theta, keys)
-        if kept is None:
-            screened = screen(current.model, theta, pool, fit_frames(current.model))
-            journal.keep_screen(f"{where}/screen", theta, keys, screen_rows(screened))
-        else:
-            screened = restore(current.model, theta, pool, kept)
+        screened = _screened(current, pool, journal, f"{where}/screen")
         sig = report["disagreement"]["signatures"] if round_ == 0 else current_signatures(current, obs)
-        elastic = list(current.model.pinned(current.fit.theta, [k.name for k in current.model.knobs
-                                                                if k.kind in ("E", "nu")]))  # fmt: skip
+        elastic = _elastic_pinned(current)
         finalists = pick_finalists(screened, sig, cfg, elastic)
-        entry = {"screen": [{"effect": s.candidate.key, "gain": s.gain, "step": s.step,
-                             "signature_share": sig.get(s.candidate.driver)} for s in screened],
-                 "finalists": [s.candidate.key for s in finalists], "elastic_pinned": elastic,
-                 "refits": []}  # fmt: skip
+        entry = {"screen": _screen_record(screened, sig), "finalists": [s.candidate.key for s in finalists],
+                 "elastic_pinned": elastic, "refits": []}  # fmt: skip
         report["rounds"].append(entry)
         refits = []
         for s in finalists:
