@@ -1163,6 +1163,14 @@ def _rows(entry: dict) -> list:
     return [r for r in entry["refits"] if "error" not in r]
 
 
+def _interval_sources(params, unc: dict, rest_sigma: float, shape_resolution: float | None) -> dict:
+    """Where the reported intervals of ``params`` come from: the standard errors of the residuals' bootstrap, the
+    rest shape's error (of size ``rest_sigma``, m) and the tracks' own error, and the refit starts within them."""
+    out = {key: {p: unc[p].get(key) for p in params} for key in ("se_noise", "se_rest_shape", "se_tracking")}
+    return {**out, "rest_shape_error_m": rest_sigma, "shape_resolution_m": shape_resolution,
+            "starts_within": min(unc[p]["starts_within"] for p in params)}  # fmt: skip
+
+
 def _found(c: Candidate, v, *, st: State, unc: dict, sig: dict, before: State, rest_sigma: float,
            shape_resolution: float, runners_up, apart: dict, fitted_with: str | None = None,
            against: str | None = None) -> dict:  # fmt: skip
@@ -1179,12 +1187,7 @@ def _found(c: Candidate, v, *, st: State, unc: dict, sig: dict, before: State, r
         "params": {p: unc[p]["value"] for p in c.params},
         "interval": {p: unc[p]["interval"] for p in c.params},
         # the interval's sources: the residuals' bootstrap, the rest shape's error (its size, m), refit starts
-        "interval_sources": {"se_noise": {p: unc[p].get("se_noise") for p in c.params},
-                             "se_rest_shape": {p: unc[p].get("se_rest_shape") for p in c.params},
-                             "se_tracking": {p: unc[p].get("se_tracking") for p in c.params},
-                             "rest_shape_error_m": rest_sigma,
-                             "shape_resolution_m": shape_resolution,
-                             "starts_within": min(unc[p]["starts_within"] for p in c.params)},
+        "interval_sources": _interval_sources(c.params, unc, rest_sigma, shape_resolution),
         "evidence": {"signature": c.driver, "signature_share": sig.get(c.driver),
                      "future_drop": v.checks["future_drop"], "delta_bic": v.checks["delta_bic"],
                      "z": significance(sub), "z_all": significance(sub, every_source=True),
@@ -1226,11 +1229,8 @@ def requote(discovered: list, final: State, obs: Observation, cfg: DiscoverConfi
         d["found_as"] = {k: d[k] for k in ("params", "interval", "law", "spec", "interval_sources", "at_bounds")}
         d["params"] = {p: unc[p]["value"] for p in c.params}
         d["interval"] = {p: unc[p]["interval"] for p in c.params}
-        d["interval_sources"] = {**{key: {p: unc[p].get(key) for p in c.params}
-                                    for key in ("se_noise", "se_rest_shape", "se_tracking")},
-                                 "rest_shape_error_m": rest_sigma,
-                                 "shape_resolution_m": d["interval_sources"].get("shape_resolution_m"),
-                                 "starts_within": min(unc[p]["starts_within"] for p in c.params)}  # fmt: skip
+        d["interval_sources"] = _interval_sources(c.params, unc, rest_sigma,
+                                                  d["interval_sources"].get("shape_resolution_m"))
         d["at_bounds"] = {p: side for p, side in final.model.pinned(final.fit.theta).items()
                           if not any(p in e["params"] for e in discovered)}  # fmt: skip
         d["law"] = _law(c, unc)
