@@ -142,6 +142,12 @@ def plot_paths(report: dict, traj: dict, obs: Observation, path: Path) -> None:
     _save(fig, path)
 
 
+def _open(closed) -> str:
+    """What a profile's sides that did not reach the threshold mean (``closed``: [low, high] reached)."""
+    sides = [s for s, c in zip(("below", "above"), closed or (True, True), strict=True) if not c]
+    return f" (open {' and '.join(sides)}: within the threshold as far as was tried)" if sides else ""
+
+
 def _mm(v: float | None) -> str:
     return "n/a" if v is None or not math.isfinite(v) else f"{1000 * v:.2f} mm"
 
@@ -233,6 +239,12 @@ def markdown(report: dict) -> str:
                 count = {2: "two", 3: "three"}[len(names)]
                 L.append(f"  - interval (95%) from {count} sources, standard errors: {ses} ({'; '.join(names)})"
                          + ("" if starts is None else f"; {starts} refit start(s) within the profile threshold"))
+            prof = {q: v for q, v in (src.get("profile") or {}).items() if v is not None}
+            if prof:
+                shut = src.get("profile_closed") or {}
+                L.append("  - profile likelihood (every other parameter refitted with it held; 95%, the interval "
+                         "spans it): " + ", ".join(f"{q.split('.', 1)[1]} [{lo:.4g}, {hi:.4g}]" + _open(shut.get(q))
+                                                   for q, (lo, hi) in prof.items()))  # fmt: skip
             held = d.get("at_bounds") or {}
             if held:
                 vals = d.get("base_after", {})

@@ -1626,6 +1626,42 @@ def test_intervals_cover_refit_starts_the_data_cannot_tell_apart():
     assert unc["drag.c"]["interval"] == [0.58, 0.62]  # the input is not changed
 
 
+def test_the_profile_bound_is_where_the_likelihood_crosses_its_threshold():
+    """On a linear least-squares profile (two correlated parameters, the other refitted exactly at each held value)
+    the bound is the closed-form crossing of n_eff·ln(L/L̂) = 3.84, found from a start 5× too short and from one 3×
+    too long, in at most three refits a side. A flat profile stays open at the farthest value tried; a held value
+    whose simulation blows up bounds the side there."""
+    from causalgs.discover.search import PROFILE_95, profile_bound
+
+    rng = np.random.default_rng(3)
+    n, n_eff = 400, 120
+    x1 = rng.normal(size=n)
+    X = np.stack([x1, 0.8 * x1 + 0.6 * rng.normal(size=n)], 1)  # correlated: the profile is not the slice
+    y = X @ np.array([0.5, -1.0]) + rng.normal(0.0, 0.3, n)
+    beta, *_ = np.linalg.lstsq(X, y, rcond=None)
+    best = float(((y - X @ beta) ** 2).mean())
+    calls = []
+
+    def loss_at(a: float) -> float:  # the other parameter refitted exactly with the first held at a
+        calls.append(a)
+        r = y - a * X[:, 0]
+        b = float(X[:, 1] @ r / (X[:, 1] @ X[:, 1]))
+        return float(((r - b * X[:, 1]) ** 2).mean())
+
+    # the exact crossing: L(a) = L̂ + (a − â)² / (n · (XᵀX)⁻¹₀₀)
+    h = math.sqrt(best * (math.exp(PROFILE_95 / n_eff) - 1) * n * np.linalg.inv(X.T @ X)[0, 0])
+    for start in (h / 5, 3 * h):
+        for side in (-1, 1):
+            calls.clear()
+            bound, closed, refits = profile_bound(loss_at, float(beta[0]), side * start, best, n_eff)
+            assert closed and refits == len(calls) <= 3
+            assert bound == pytest.approx(beta[0] + side * h, rel=0, abs=0.02 * h), (start, side)
+    flat, closed, refits = profile_bound(lambda a: best, 0.0, 0.1, best, n_eff)
+    assert not closed and refits == 3 and flat == pytest.approx(0.1 * 4 * 4)  # open: the farthest inside
+    blown, closed, refits = profile_bound(lambda a: None if a > 0.3 else best, 0.0, 0.1, best, n_eff)
+    assert closed and blown == pytest.approx(0.4) and refits == 2
+
+
 def test_choice_among_passers_held_out_first_then_bic():
     """The held-out frames keep the passers they do not tell from the best (within the 15% margin, or not beyond the
     paired bootstrap of the refits' own uncertainty); among those the lowest BIC is named, and any within 10 of it

@@ -72,6 +72,9 @@ def test_a_hidden_drag_is_found_named_and_repaired(ti32_runtime, tmp_path):
     lo, hi = found["interval"]["linear_drag.c"]
     assert lo < c < hi and hi - lo < 0.5 * C_TRUE
     assert found["law"].startswith("linear drag: a = −c·v, c = ")
+    # the interval spans the profile likelihood, closed on both sides, around the value
+    plo, phi = found["interval_sources"]["profile"]["linear_drag.c"]
+    assert lo <= plo < c < phi <= hi and found["interval_sources"]["profile_closed"]["linear_drag.c"] == [True, True]
     assert rep["error_after"]["future_rms_m"] < 0.5 * rep["error_before"]["future_rms_m"]
     assert NOISE <= rep["floor_rms_m"] <= rep["floor_rms_base_m"]  # the repaired model's floor, when lower
     assert rep["disagreement"]["first_departure"] is not None
@@ -82,6 +85,7 @@ def test_a_hidden_drag_is_found_named_and_repaired(ti32_runtime, tmp_path):
         assert (tmp_path / name).is_file(), name
     md = (tmp_path / "report.md").read_text()
     assert "linear drag" in md and "## Errors (RMS per coordinate" in md and "Round 1" in md
+    assert "profile likelihood (every other parameter refitted with it held" in md
     # the errors are what the report's heading says: RMS per coordinate over every point and held-out frame
     z = np.load(tmp_path / "trajectories.npz")
     for k in ("before", "after"):
