@@ -115,6 +115,11 @@ def _starts(text: str) -> tuple[float, ...]:
                    "floor's), screen the others from its refit and refit them jointly with it: two effects missing "
                    "at once, named together where the pair passes against the base and the partner against the "
                    "lead alone. A pair counts as two of --max-effects.")
+@click.option("--profile/--no-profile", default=True, show_default=True,
+              help="Widen each named parameter's 95% interval to its profile likelihood: refits of every other "
+                   "parameter with it held, on either side, out to where the fit window's error rises by the "
+                   "chi-square threshold (over the gate's effective sample size). A few refits per parameter "
+                   "and side; along a valley of compensating parameters it is the widest source.")
 @click.option("--workers", type=click.IntRange(0, 256), default=0,
               help="Processes the independent rollouts of every calibration run in (a Jacobian's columns, a scan's "
                    "grid points, a step's damping trials), each on a CPU of its own; the results do not depend on "
@@ -126,7 +131,7 @@ def _starts(text: str) -> tuple[float, ...]:
                    "same.")  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print report.json to stdout.")
 def discover(source, out, spec, learn, candidates, max_effects, res, starts, iterations, tracking, lens, split, stretch,
-             weigh, weigh_by, joint, workers, precision, resume, as_json):  # fmt: skip
+             weigh, weigh_by, joint, profile, workers, precision, resume, as_json):  # fmt: skip
     """Find where simulation and measurement disagree, name the missing physical effect, add it, show the gap shrink.
 
     SOURCE is a fitted run folder (`causalgs fit`: the measurement is the tracked motion of its particles over the
@@ -151,10 +156,10 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
 
     \b
     Verdicts: the named effect(s) with their law and 95% interval (the residuals' block bootstrap, the rest shape's
-    error and the bodies' extent, for a run the tracks' own smooth error at the noise credited to them, and refit
-    starts the data cannot tell apart); "ambiguous" (the data does not separate two
-    candidates); "no missing effect"; "unexplained discrepancy" (the model stays well above the noise floor, a
-    free force would help, but no named effect passes).
+    error and the bodies' extent, for a run the tracks' own smooth error at the noise credited to them, refit
+    starts the data cannot tell apart and the profile likelihood, --profile); "ambiguous" (the data does not
+    separate two candidates); "no missing effect"; "unexplained discrepancy" (the model stays well above the
+    noise floor, a free force would help, but no named effect passes).
 
     Writes --out/report.json, report.md, error.png (error per frame before and after), residuals.png (held-out
     residual heat on the particles), paths.png, trajectories.npz (the measurement and both simulations, every
@@ -175,7 +180,8 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
     if 0 < res < 8:
         raise CausalGSError(f"--res {res}: give 0 (a run's own grid) or at least 8 cells")
     cfg = DiscoverConfig(res=res, starts=_starts(starts), iterations=iterations, max_effects=max_effects,
-                         weigh=weigh, weigh_by=weigh_by, joint=joint, workers=workers or _cpus())  # fmt: skip
+                         weigh=weigh, weigh_by=weigh_by, joint=joint, profile=profile,
+                         workers=workers or _cpus())  # fmt: skip
     _ti.init("cpu", precision, quiet=True)
     from causalgs.progress import progress_bar
 
