@@ -911,7 +911,8 @@ def profile_bound(loss_at, u: float, step: float, best: float, n_eff: int, steps
     return u + side * (h_in if h_out is None else h), h_out is not None, steps
 
 
-def profiled(unc: dict, state: State, params, n_eff: int, journal, where: str, cfg: DiscoverConfig) -> dict:
+def profiled(unc: dict, state: State, params, n_eff: int, journal, where: str, cfg: DiscoverConfig,
+             log=None) -> dict:
     """``unc`` with each interval of ``params`` widened to the parameter's 95% profile-likelihood interval at the
     fit ``state``: on either side, refits of every other parameter with this one held (:func:`profile_bound`,
     calibrations kept in ``journal`` under ``where``), from the linearised width (``profile_step``, see
@@ -928,6 +929,8 @@ def profiled(unc: dict, state: State, params, n_eff: int, journal, where: str, c
         if not step > 0:  # the window does not move it: nothing to profile
             continue
         i = model.index(p)
+        if log is not None:
+            log(f"  profiling {p}: refits with it held on either side")
         bounds, closed, refits = [], [], 0
         for side, s in (("low", -step), ("high", step)):
             b, c, n = profile_bound(partial(_held, journal, f"{where}/{p} {side}", state, i, cfg), float(theta[i]), s,
@@ -1308,7 +1311,7 @@ def _found(c: Candidate, v, *, st: State, unc: dict, sig: dict, before: State, r
 
 
 def requote(discovered: list, final: State, obs: Observation, cfg: DiscoverConfig, floor_coord: float,
-            sigma: float, journal: Journal | None = None) -> None:
+            sigma: float, journal: Journal | None = None, log=None) -> None:
     """Quote every effect found in an earlier round at the repaired model ``final``: each later round refits the
     earlier effects' parameters with its own (and the materials and throw), so their values move, and the model the
     repair hands on holds the final ones. On the trajectory table's force + damping (seed 1) damping passed round 1
@@ -1325,7 +1328,7 @@ def requote(discovered: list, final: State, obs: Observation, cfg: DiscoverConfi
     unc = widen(_uncertainty(final, params, cfg, rest_sigma=rest_sigma), final, n_eff)
     if cfg.profile:
         unc = profiled(unc, final, params, n_eff, journal if journal is not None else Journal(None, ""),
-                       "requote/profile", cfg)  # fmt: skip
+                       "requote/profile", cfg, log)  # fmt: skip
     later = [d["effect"] for d in discovered if d["spec"] == spec]
     for d in stale:
         c = BY_KEY[d["effect"]]
@@ -1528,7 +1531,7 @@ def _discover(obs: Observation, spec: str, learn, *, candidates, cfg: DiscoverCo
         rest_sigma = rest_shape_error(st, obs, floor_coord, sigma)
         unc = widen(_uncertainty(st, c.params, cfg, rest_sigma=rest_sigma), st, n_eff)
         if cfg.profile:
-            unc = profiled(unc, st, c.params, n_eff, journal, f"{where}/{c.key}/profile", cfg)
+            unc = profiled(unc, st, c.params, n_eff, journal, f"{where}/{c.key}/profile", cfg, log)
         # how each other passer was told apart: on the held-out frames, or (tied there) by the fit window's BIC
         lowest = min(passed, key=lambda t: t[1].future)
         apart = {p[0].key: "fit window" if _future_close(lowest, p, cfg) else "held-out frames" for p in passed}
@@ -1548,7 +1551,7 @@ def _discover(obs: Observation, spec: str, learn, *, candidates, cfg: DiscoverCo
             report["discovered"].append(_found(c, v, runners_up=scored, apart=apart, **found))
         current = st
     if report["discovered"]:
-        requote(report["discovered"], current, obs, cfg, floor_coord, sigma, journal)
+        requote(report["discovered"], current, obs, cfg, floor_coord, sigma, journal, log)
     if report["ambiguous"]:
         report["verdict"] = "ambiguous"
     elif report["discovered"]:

@@ -236,7 +236,7 @@ def test_command_line_writes_the_report_and_refuses_bad_input(ti32_runtime, tmp_
 
 def test_discover_passes_split_and_lens_to_the_measurement(tmp_path, monkeypatch):
     """``--split/--no-split``, ``--lens`` and ``--stretch`` reach the measurement of a run (load_source, through
-    run_discovery)."""
+    run_discovery); ``--profile/--no-profile`` its config."""
     import causalgs.discover.run as R
 
     seen = []
@@ -252,6 +252,11 @@ def test_discover_passes_split_and_lens_to_the_measurement(tmp_path, monkeypatch
         r = CliRunner().invoke(cli, ["discover", str(tmp_path / "obs.npz"), "--out", str(tmp_path / "d"), *extra])
         assert r.exit_code == 0, r.output
         assert seen[-1]["split"] is split and seen[-1]["lens"] == lens and seen[-1]["stretch"] is stretch
+    # the profile likelihood of the named parameters is on unless --no-profile
+    assert seen[-1]["config"].profile is True
+    r = CliRunner().invoke(cli, ["discover", str(tmp_path / "obs.npz"), "--out", str(tmp_path / "d"), "--no-profile"])
+    assert r.exit_code == 0, r.output
+    assert seen[-1]["config"].profile is False
 
 
 def _fake_report(effect: str | None, value: float = 0.0, verdict: str | None = None) -> dict:
