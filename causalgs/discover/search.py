@@ -813,16 +813,14 @@ def _uncertainty(state: State, params, cfg: DiscoverConfig, rest_sigma: float = 
     vals = model.values(th)
     # the linearised profile's half-width per parameter (internal units), where :func:`profiled` starts: the
     # distance at which the window's error, every other parameter refitted, would rise by the 95% threshold
+    # (the covariance (JᵀJ)⁺ of the linearised refit is pinv(J)·pinv(J)ᵀ: its diagonal, each row's squared norm)
     n_eff = effective_n(len(fr), obs.bodies, obs.points, cfg.gate.clusters_per_body)
-    moving = live(model, J)
-    cov = np.zeros((len(th), len(th)))
-    if moving.any():
-        cov[np.ix_(moving, moving)] = np.linalg.pinv(J[:, moving].T @ J[:, moving])
+    var = (refit_map(model, J) ** 2).sum(1) if params else None
     out = {}
     for p in params:
         i = model.index(p)
         knob = model.knobs[i]
-        step = math.sqrt(max(PROFILE_95 * state.fit.loss * cov[i, i] * n_fit / n_eff, 0.0))
+        step = math.sqrt(max(PROFILE_95 * state.fit.loss * var[i] * n_fit / n_eff, 0.0))
         # Deviations about their own mean: a block resample's least-squares shift is not centred on zero (edge
         # blocks), and the interval should say how far the estimate moves, not where resampling drifts.
         centred = dev[:, i] - dev[:, i].mean()
