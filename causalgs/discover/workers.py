@@ -77,14 +77,22 @@ class RolloutPool:
             for f in futures:
                 f.cancel()
 
-    def close(self) -> None:
+    def close(self, stop: bool = False) -> None:
+        """Shut the workers down once their rollouts end; ``stop`` (the caller was stopped: Ctrl-C, SIGTERM, an
+        error): terminate them instead, rather than wait for the rollouts under way (on a landing a calibration's
+        batch is minutes). What the caller finished is in its journal and resumes."""
+        if stop:
+            for p in list((getattr(self._pool, "_processes", None) or {}).values()):
+                p.terminate()
         self._pool.shutdown(wait=True, cancel_futures=True)
         shutil.rmtree(self.dir, ignore_errors=True)
 
 
 @contextlib.contextmanager
 def rollout_workers(jobs: int):
-    """Independent rollouts inside run in ``jobs`` worker processes (1: here, as everywhere outside)."""
+    """Independent rollouts inside run in ``jobs`` worker processes (1: here, as everywhere outside). Left by an
+    exception (Ctrl-C, SIGTERM, which the command line turns into an exit, or an error), the workers are terminated
+    at once instead of finishing what they were given."""
     global _active
     if jobs <= 1 or _active is not None:  # nested: the outer pool serves
         yield _active
@@ -93,9 +101,12 @@ def rollout_workers(jobs: int):
     _active = pool
     try:
         yield pool
-    finally:
+    except BaseException:
         _active = None
-        pool.close()
+        pool.close(stop=True)
+        raise
+    _active = None
+    pool.close()
 
 
 def active() -> RolloutPool | None:

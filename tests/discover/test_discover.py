@@ -712,6 +712,40 @@ def test_a_stopped_table_stops_its_workers_instead_of_waiting_for_their_runs():
     assert time.monotonic() - t0 < 45  # the runs would have taken a minute; spawning two workers takes seconds
 
 
+def test_a_stopped_discovery_stops_its_rollout_workers_instead_of_waiting_for_their_rollouts(ti32_runtime,
+                                                                                             tmp_path):
+    """Stopped while its rollout workers are busy (Ctrl-C here; SIGTERM is an exit, handled alike), discovery
+    terminates them: the half-minute task under way never finishes, and no worker is left running."""
+    import multiprocessing
+    import signal
+    import threading
+    import time
+
+    from causalgs.discover import workers
+
+    assert workers.active() is None
+    mark = tmp_path / "mark"
+    main = threading.main_thread().ident
+
+    def stop_once_started():
+        while not mark.exists():
+            time.sleep(0.05)
+        signal.pthread_kill(main, signal.SIGINT)
+
+    before = multiprocessing.active_children()
+    with pytest.raises(KeyboardInterrupt):
+        with workers.rollout_workers(2) as pool:
+            threading.Thread(target=stop_once_started, daemon=True).start()
+            # a task that says it started, runs half a minute and says it finished (exec: a builtin the spawned
+            # workers unpickle, where a function of this test module would not import)
+            task = (f"import pathlib, time\np = pathlib.Path({str(mark)!r})\np.write_text('started')\n"
+                    "time.sleep(30)\np.write_text('finished')\n")
+            pool.map(exec, [(task, {})])
+    assert workers.active() is None
+    assert mark.read_text() == "started"
+    assert [p for p in multiprocessing.active_children() if p not in before] == []
+
+
 def test_no_further_round_once_the_repaired_model_agrees_within_the_noise(ti32_runtime, tmp_path):
     """After the drag is found, the repaired model fits the window at the noise and the held-out frames within what
     a correct model misses them by: a second round would only fit the noise, and is not run."""
