@@ -46,6 +46,21 @@ def _save(fig, path: Path) -> None:
     write_bytes(path, buf.getvalue())
 
 
+def plot_images(panels: list[tuple[str, np.ndarray]], title: str, path: Path) -> None:
+    """``images.png``: [H, W, 3] images in [0, 1] side by side, each under its label, pixels shown as they are."""
+    plt = _plt()
+    h, w = panels[0][1].shape[:2]
+    size = 2.6  # inches a panel is tall
+    fig, axes = plt.subplots(1, len(panels), figsize=(size * w / max(h, 1) * len(panels), size + 0.6), squeeze=False)
+    for ax, (label, img) in zip(axes[0], panels, strict=True):
+        ax.imshow(np.clip(img, 0, 1), interpolation="nearest")
+        ax.set_title(label, fontsize=9)
+        ax.set_axis_off()
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    _save(fig, path)
+
+
 def _rms_curve(sim: np.ndarray, obs: Observation) -> np.ndarray:
     return np.sqrt(((sim - obs.x[1:]) ** 2).sum(-1).mean(-1))
 

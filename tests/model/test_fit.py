@@ -486,6 +486,11 @@ def test_discovery_reads_a_fitted_run(fitted, tmp_path):
     im = rep["images"]  # held-out cameras at held-out frames, rendered before and after
     assert im is not None and im["images"] >= 1 and np.isfinite(im["psnr_before"]) and (out / "images.png").is_file()
     assert min(im["frames"]) >= obs.observed
+    import cv2
+
+    panel = cv2.imread(str(out / "images.png"))  # five labelled panels of a held-out image, under a title
+    h_img, w_img = data0.val[0].image.shape[:2]
+    assert panel.shape[1] >= 4 * w_img and panel.shape[0] > h_img, (panel.shape, (h_img, w_img))
     # How well the measurement matches the video: the tracked motion's PSNR at every observed frame, the same as a
     # render of the kinematic state at that frame scores; frames far below the median are named in the report.
     from causalgs.discover.report import _ranges
