@@ -79,8 +79,8 @@ class RolloutPool:
 
     def close(self, stop: bool = False) -> None:
         """Shut the workers down once their rollouts end; ``stop`` (the caller was stopped: Ctrl-C, SIGTERM, an
-        error): terminate them instead, rather than wait for the rollouts under way (on a landing a calibration's
-        batch is minutes). What the caller finished is in its journal and resumes."""
+        error): terminate them instead, rather than wait for the rollouts under way. What the caller finished is in
+        its journal and resumes."""
         if stop:
             for p in list((getattr(self._pool, "_processes", None) or {}).values()):
                 p.terminate()
