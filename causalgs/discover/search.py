@@ -435,7 +435,7 @@ def refit_map(model: PhysicsModel, J: np.ndarray) -> np.ndarray:
 
 def rest_shape_draws(model: PhysicsModel, theta: torch.Tensor, J: np.ndarray, sigma: float, fut=(),
                      J_fut: np.ndarray | None = None, samples: int = REST_SAMPLES, seed: int = 0,
-                     extent: float = 0.0) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+                     extent: float = 0.0, pinv: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """How far the fit would move had the rest shape — the first frame, from which every simulation starts —
     carried another draw of its error, N(0, sigma²) per coordinate, and had the bodies' material another extent
     (:func:`extent_draw` at resolution ``extent``: the measured points stay where they are, the lens carries the
@@ -450,7 +450,7 @@ def rest_shape_draws(model: PhysicsModel, theta: torch.Tensor, J: np.ndarray, si
     base = positions(model, theta, fr + fut)
     plan = model.plan_of[2]  # every draw keeps this substep schedule (see calibrate.change)
     n_fit = len(fr) * model.obs.points * 3
-    pinv = refit_map(model, J)
+    pinv = refit_map(model, J) if pinv is None else pinv
     rng = np.random.default_rng(seed)
     x0 = model.x0
     extent = extent if model.obs.mix is not None else 0.0
@@ -541,7 +541,8 @@ def drift_fields(obs: Observation, frames, sigma: float, samples: int, seed: int
         yield size[:, None, None] * e[None]
 
 
-def drift_draws(model: PhysicsModel, J: np.ndarray, sigma: float, samples: int, seed: int = 1) -> np.ndarray:
+def drift_draws(model: PhysicsModel, J: np.ndarray, sigma: float, samples: int, seed: int = 1,
+                pinv: np.ndarray | None = None) -> np.ndarray:
     """[samples, k] θ shifts (internal units) of the linearised refit (:func:`refit_map` of the fit-window
     sensitivities ``J``) under draws of the tracks' own smooth error (:func:`drift_fields` at ``sigma``, the noise
     credited to the tracks). Nothing (shape [0, k]) where the observation has no drift profile (independent noise,
@@ -562,7 +563,8 @@ def drift_draws(model: PhysicsModel, J: np.ndarray, sigma: float, samples: int, 
     # A draw is its shape times each frame's size, so the refit of every draw is one map of the shape [P·3]: the
     # refit map summed over the frames with the sizes (and the residual weights), computed once.
     size = np.broadcast_to((sigma * obs.drift[fr])[:, None, None], (len(fr), obs.points, 3))
-    per_shape = np.einsum("kfpc,fpc->kpc", refit_map(model, J).reshape(J.shape[1], len(fr), obs.points, 3),
+    pinv = refit_map(model, J) if pinv is None else pinv
+    per_shape = np.einsum("kfpc,fpc->kpc", pinv.reshape(J.shape[1], len(fr), obs.points, 3),
                           weighted(obs, size, fr)).reshape(J.shape[1], -1)  # fmt: skip
     return np.array([per_shape @ e.reshape(-1) for e in drift_shapes(obs, samples, seed)]) / UNIT
 
@@ -793,11 +795,14 @@ def _uncertainty(state: State, params, cfg: DiscoverConfig, rest_sigma: float = 
     r = weighted(obs, obs.x[fr] - state.sim[[f - 1 for f in fr]], fr).reshape(-1) / UNIT
     dev = block_bootstrap(J, r, len(fr), cfg.gate)  # [S, k] in internal units
     rest, rest_fut = np.zeros((0, len(th))), None
-    if rest_sigma > 0 or (obs.shape_resolution > 0 and obs.mix is not None):
-        rest, rest_fut = rest_shape_draws(model, th, J, rest_sigma, fut, J_fut, extent=obs.shape_resolution)
+    drawn = rest_sigma > 0 or (obs.shape_resolution > 0 and obs.mix is not None)
+    pinv = refit_map(model, J) if drawn or params else None  # the linearised refit, shared by what follows
+    if drawn:
+        rest, rest_fut = rest_shape_draws(model, th, J, rest_sigma, fut, J_fut, extent=obs.shape_resolution,
+                                          pinv=pinv)  # fmt: skip
     # the tracks' own smooth error, at the noise credited to them, where the measurement is tracked
-    drift = drift_draws(model, J, obs.noise if obs.noise else noise_floor(obs), cfg.gate.resamples) if params else \
-        np.zeros((0, len(th)))
+    drift = drift_draws(model, J, obs.noise if obs.noise else noise_floor(obs), cfg.gate.resamples, pinv=pinv) \
+        if params else np.zeros((0, len(th)))
     if floor > 0:
         state.spread = _spread(model, J_all, floor, cfg)
         # without the rest shape's own error those draws are the extent's alone: no second set of rollouts
@@ -815,7 +820,7 @@ def _uncertainty(state: State, params, cfg: DiscoverConfig, rest_sigma: float = 
     # distance at which the window's error, every other parameter refitted, would rise by the 95% threshold
     # (the covariance (JᵀJ)⁺ of the linearised refit is pinv(J)·pinv(J)ᵀ: its diagonal, each row's squared norm)
     n_eff = effective_n(len(fr), obs.bodies, obs.points, cfg.gate.clusters_per_body)
-    var = (refit_map(model, J) ** 2).sum(1) if params else None
+    var = (pinv**2).sum(1) if params else None
     out = {}
     for p in params:
         i = model.index(p)
