@@ -5,6 +5,9 @@ handoff to Taichi's pool, and unpinned each wakes a thread on another CPU). So t
 are spawned (Taichi's runtime must not be forked), start Taichi with the caller's device and precision and one
 thread, and each takes the next CPU of those the caller started with. Where the caller keeps working while they
 run (``caller_busy``), the CPUs it is not pinned to come first, so that it keeps one of its own.
+
+A caller that is stopped (Ctrl-C, SIGTERM, which the command line turns into an exit, or an error) ends its pool
+with :func:`stop`: the workers are terminated rather than waited for, and only the pool's own.
 """
 
 from __future__ import annotations
@@ -52,6 +55,17 @@ def pinned_pool(jobs: int, *, caller_busy: bool = False):
     slots = ctx.Value("i", 0)  # each worker takes the next and runs on that CPU
     args = (rt.device, rt.precision, rt.debug, slots, worker_cpus(caller_busy))
     return ProcessPoolExecutor(int(jobs), mp_context=ctx, initializer=_init, initargs=args)
+
+
+def stop(pool) -> None:
+    """Terminate the worker processes of ``pool`` (a ``ProcessPoolExecutor``) now, rather than wait for the work
+    under way, and shut it down; pending work is cancelled. Other child processes of the caller are left alone.
+
+    The pool's own management thread sees its workers end and reaps them; they are not joined here as well, or a
+    worker could be reaped twice and then read as alive ever after."""
+    for p in list((getattr(pool, "_processes", None) or {}).values()):
+        p.terminate()
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _init(device: str, precision: str, debug: bool, slots, cpus: list[int] | None) -> None:

@@ -344,7 +344,7 @@ def execute(todo: list, jobs: int, local, worker, args: tuple, failed, finish, l
     from concurrent.futures import ProcessPoolExecutor
 
     from causalgs import _ti
-    from causalgs.processes import shares
+    from causalgs.processes import shares, stop
 
     # Each run on a share of the CPUs of its own: a Taichi process runs several times faster pinned than where the
     # system moves it and its pool's handoffs wake the other CPUs (measured: causalgs._ti).
@@ -358,11 +358,7 @@ def execute(todo: list, jobs: int, local, worker, args: tuple, failed, finish, l
     except BaseException:
         # Stopped (Ctrl-C, or SIGTERM, which the command line turns into an exit): the workers stop too, rather
         # than the exit waiting hours for the runs under way. Each run keeps what it finished and resumes.
-        # The pool's own thread sees them end and reaps them; joined here too, a worker could be reaped twice and
-        # then read as alive ever after.
-        for p in multiprocessing.active_children():
-            p.terminate()
-        pool.shutdown(wait=True, cancel_futures=True)
+        stop(pool)
         raise
     pool.shutdown()
     if broken:

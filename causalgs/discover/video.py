@@ -26,7 +26,6 @@ what one half's tracks err, and :data:`SPLIT` times that (:func:`split_sigma`) i
 from __future__ import annotations
 
 import math
-import multiprocessing
 from dataclasses import replace
 from pathlib import Path
 
@@ -72,11 +71,11 @@ def refined_together(run_dir, model, data, tl, specs: list[tuple], workers: int,
     while this process refines the first (its progress ``steps[i]``); each is then read from the run as it ends. A
     refinement takes one CPU: on the damping landing (seed 0, 144 frames) the rigid tracks took 29 minutes and the
     stretching ones 23, one after the other."""
+    from causalgs.processes import pinned_pool, stop
+
     todo = [i for i, (cfg, half, frames) in enumerate(specs) if not tracks_kept(run_dir, model, cfg, half, frames)]
     pool, elsewhere = None, {}
     if workers > 1 and len(todo) > 1:
-        from causalgs.processes import pinned_pool
-
         pool = pinned_pool(min(workers - 1, len(todo) - 1), caller_busy=True)
         elsewhere = {i: pool.submit(_refine_here, str(run_dir), *specs[i]) for i in todo[1:]}
     try:
@@ -91,9 +90,9 @@ def refined_together(run_dir, model, data, tl, specs: list[tuple], workers: int,
             for f in elsewhere.values():
                 f.cancel()
             if any(not f.done() for f in elsewhere.values()):  # stopped: the refinements under way stop too
-                for p in multiprocessing.active_children():
-                    p.terminate()
-            pool.shutdown(wait=True, cancel_futures=True)
+                stop(pool)
+            else:
+                pool.shutdown()
 
 
 def _refine_here(run_dir: str, cfg: RefineConfig, half: int | None, frames: int | None) -> None:

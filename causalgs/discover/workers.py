@@ -81,10 +81,12 @@ class RolloutPool:
         """Shut the workers down once their rollouts end; ``stop`` (the caller was stopped: Ctrl-C, SIGTERM, an
         error): terminate them instead, rather than wait for the rollouts under way. What the caller finished is in
         its journal and resumes."""
+        from causalgs import processes
+
         if stop:
-            for p in list((getattr(self._pool, "_processes", None) or {}).values()):
-                p.terminate()
-        self._pool.shutdown(wait=True, cancel_futures=True)
+            processes.stop(self._pool)
+        else:
+            self._pool.shutdown(wait=True, cancel_futures=True)
         shutil.rmtree(self.dir, ignore_errors=True)
 
 
