@@ -167,6 +167,11 @@ def _mm(v: float | None) -> str:
     return "n/a" if v is None or not math.isfinite(v) else f"{1000 * v:.2f} mm"
 
 
+def _signed(v: float, spec: str = ".1f") -> str:
+    """A number with its sign always shown, the minus as the typographic one (−) that the percentages beside it use."""
+    return format(v, "+" + spec).replace("-", "\u2212")
+
+
 def _gap(gap) -> str:
     """A held-out difference against the first-named candidate with its paired-bootstrap 95% interval."""
     if not gap:
@@ -174,7 +179,7 @@ def _gap(gap) -> str:
     lo, hi = gap
     if lo == 0.0 and hi == 0.0:
         return ""
-    return f"; its excess over the first, 95% paired bootstrap: [{lo:+.3g}, {hi:+.3g}] cm²"
+    return f"; its excess over the first, 95% paired bootstrap: [{_signed(lo, '.3g')}, {_signed(hi, '.3g')}] cm²"
 
 
 def _lens(report: dict) -> str:
@@ -230,7 +235,7 @@ def markdown(report: dict) -> str:
                                       f"beside `{against}` this one passes against `{against}` alone, and the pair "
                                       "against the base"))  # fmt: skip
             L += ["  - evidence" + ("" if against == "base" else f" (against `{against}` alone)") + ": held-out RMS "
-                  f"−{100 * (1 - math.sqrt(max(0.0, 1 - ev['future_drop']))):.0f}%; ΔBIC {ev['delta_bic']:+.1f}; "
+                  f"−{100 * (1 - math.sqrt(max(0.0, 1 - ev['future_drop']))):.0f}%; ΔBIC {_signed(ev['delta_bic'])}; "
                   + "".join(f"{p} at {z:.1f} SE{_all(ev, p)}; " for p, z in ev["z"].items()) + hint]  # fmt: skip
             src = d.get("interval_sources") or {}
             rest = src.get("se_rest_shape") or {}
@@ -272,12 +277,12 @@ def markdown(report: dict) -> str:
                     how = {"held-out frames": "told apart on the held-out frames",
                            "fit window": "as good on the held-out frames, told apart by BIC on the fit window"}
                     L.append(f"  - also passed, {how.get(r.get('told_apart_by'), 'told apart')}: `{r['effect']}` "
-                             f"(ΔBIC {r['delta_bic']:+.1f}, held-out MSE {r['future_mse_cm2']:.3g} cm²"
+                             f"(ΔBIC {_signed(r['delta_bic'])}, held-out MSE {r['future_mse_cm2']:.3g} cm²"
                              f"{_gap(r.get('future_gap_cm2'))})")  # fmt: skip
         L.append("")
     elif report["ambiguous"]:
         L += ["## Ambiguous: the data does not separate these", ""]
-        L += [f"- {a['law']} (ΔBIC {a.get('delta_bic', float('nan')):+.1f}, held-out MSE "
+        L += [f"- {a['law']} (ΔBIC {_signed(a.get('delta_bic', float('nan')))}, held-out MSE "
               f"{a['future_mse_cm2']:.3g} cm²{_gap(a.get('future_gap_cm2'))})"
               for a in report["ambiguous"]]  # fmt: skip
         L.append("")

@@ -405,8 +405,9 @@ def choose_lens(rigid, affine, gain_db: float = AFFINE_GAIN_DB, share: float = 0
     kind = rich if med >= gain_db and better >= agree else plain
     text = (f"Tracks that also {what} matched the held-out cameras at a median {med_a:.1f} dB against "
             f"{med_r:.1f} dB for {plain} ones. Over the last {len(last)} frames they gained a median {med:+.2f} dB "
-            f"and were better on {better:.0%} of them ({gain_db:.2f} dB on {agree:.0%} asked, as where a body is "
-            f"deformed for good): the tracks are {kind}.")  # fmt: skip
+            f"and were better on {better:.0%} of them; taking them needs a median gain of at least {gain_db:.2f} dB "
+            f"and a gain on at least {agree:.0%} of those frames, as where a body is deformed for good: the tracks "
+            f"are {kind}.")  # fmt: skip
     return {"lens": kind, "gain_db": med, "agree": better, "text": text}
 
 

@@ -465,7 +465,7 @@ def test_the_report_says_how_each_other_passer_was_told_apart():
              base_before={"body 0.E": 4e5}, base_after={"body 0.E": 2.6e4})  # fmt: skip
     text = markdown(rep)
     # what decided comes first; a signature that hardly shows the effect is said to be so
-    assert "evidence: held-out RMS −83%; ΔBIC -690.4; linear_drag.c at 30.2 SE; its signature `v` explains 4%" in text
+    assert "evidence: held-out RMS −83%; ΔBIC −690.4; linear_drag.c at 30.2 SE; its signature `v` explains 4%" in text
     assert "(the smoothed accelerations do not show it; the refit does)" in text
     d["evidence"]["signature_share"] = 0.9
     assert "explains 90% of the residual acceleration\n" in markdown(rep)
