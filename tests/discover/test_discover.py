@@ -4,6 +4,7 @@ drag, where it must find nothing; the report, the plots and the command line."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from causalgs.discover.observation import Observation
+from causalgs.discover.observation import Observation, synthesize
 from causalgs.discover.search import DiscoverConfig
 from cli.main import cli
 
@@ -413,6 +414,33 @@ def test_predictions_are_scored_against_the_noise_free_truth(tmp_path):
         Observation(times=obs.times, x=obs.x, vol=obs.vol, body=obs.body, observed=k, lo=obs.lo, hi=obs.hi,
                     clean=obs.clean[:, :5])  # fmt: skip
     assert "\n" not in str(bad.value)
+
+
+def test_the_truths_own_physics_calibrated_from_the_measurement_is_the_floor_a_repair_can_reach(tmp_path):
+    """From the clean first frame the truth's physics reproduces the clean motion (a floor of zero); from a noisy
+    one it misses the held-out truth by what the rest shape's noise moved, which the table then reports beside the
+    repair's error (kept in the case's journal, not computed again on a resumed table)."""
+    import causalgs.discover.table as T
+    from causalgs.discover.journal import Journal
+
+    spec = "gravity;linear_drag:c=0.6;ground:mu=0.3;walls"
+    clean = synthesize("toss", spec, seed=0, points=150, frames=8, fps=24.0, reference_res=12)
+    assert T.truth_floor(clean, 12, iterations=2) < 1e-6
+    noisy = synthesize("toss", spec, seed=0, points=150, frames=8, fps=24.0, noise=0.002, rest_noise=0.004,
+                       reference_res=12)  # fmt: skip
+    journal = Journal(tmp_path / "progress.json", "k", resume=True)
+    floor = T.truth_floor(noisy, 12, iterations=2, journal=journal)
+    assert 1e-4 < floor < 0.02 and "truth floor" in journal.entries
+    again = Journal(tmp_path / "progress.json", "k", resume=True)
+    assert T.truth_floor(noisy, 12, iterations=2, journal=again) == floor and again.reused == 1
+    # no truth, no floor
+    assert T.truth_floor(dataclasses.replace(noisy, clean=None), 12) is None
+    # the row: the share of the error above the floor the repair removed, and the table's cell
+    truth = {"future_rms_before_m": 0.004, "future_rms_after_m": 0.0021, "future_rms_floor_m": 0.0025}
+    row = T.score(T.BY_NAME["linear_drag"], {**_fake_report("linear_drag", 0.6), "truth_error": truth})
+    assert row["future_truth_drop"] < 0.5 and row["truth_excess_removed"] == 1.0
+    assert T.summary([{**row, "seed": 1}])["excess_over_truth_floor_removed_ge_50pct"] == 1.0
+    assert "| 4.0 → 2.1 mm (-48%); floor 2.5 mm |" in T.markdown([{**row, "seed": 1}])
 
 
 def test_the_repair_is_judged_on_the_error_above_the_noise_floor():
