@@ -440,7 +440,7 @@ def test_the_truths_own_physics_calibrated_from_the_measurement_is_the_floor_a_r
     row = T.score(T.BY_NAME["linear_drag"], {**_fake_report("linear_drag", 0.6), "truth_error": truth})
     assert row["future_truth_drop"] < 0.5 and row["truth_excess_removed"] == 1.0
     assert T.summary([{**row, "seed": 1}])["excess_over_truth_floor_removed_ge_50pct"] == 1.0
-    assert "| 4.0 → 2.1 mm (-48%); floor 2.5 mm |" in T.markdown([{**row, "seed": 1}])
+    assert "| 4.0 → 2.1 mm (-48%); the truth's physics 2.5 mm |" in T.markdown([{**row, "seed": 1}])
 
 
 def test_the_repair_is_judged_on_the_error_above_the_noise_floor():
