@@ -491,7 +491,8 @@ def vs_truth(r: dict) -> str:
     if r.get("future_truth_before_m") is None or r.get("future_truth_after_m") is None:
         return "—"
     drop = "" if r.get("future_truth_drop") is None else f" ({-100 * r['future_truth_drop']:+.0f}%)"
-    floor = "" if r.get("future_truth_floor_m") is None else f"; the truth's physics {1000 * r['future_truth_floor_m']:.1f} mm"
+    t_floor = r.get("future_truth_floor_m")
+    floor = "" if t_floor is None else f"; the truth's physics {1000 * t_floor:.1f} mm"
     return f"{1000 * r['future_truth_before_m']:.1f} → {1000 * r['future_truth_after_m']:.1f} mm{drop}{floor}"
 
 
