@@ -120,14 +120,19 @@ def observe(case: Case, seed: int, cfg: TableConfig) -> Observation:
                       reference_res=cfg.res, rigid=cfg.rigid)  # fmt: skip
 
 
+def _throw(obs: Observation, scale: float = 1.0) -> dict[str, float]:
+    """Every body's true initial velocity and spin (times ``scale``) by the model's parameter names."""
+    out = {}
+    for name, body in zip(obs.names, obs.truth["bodies"], strict=True):
+        out |= {f"{name}.v0[{i}]": scale * float(body["velocity"][i]) for i in range(3)}
+        out |= {f"{name}.omega0[{i}]": scale * float(body["omega"][i]) for i in range(3)}
+    return out
+
+
 def _start(case: Case, obs: Observation) -> tuple[dict | None, tuple[float, ...] | None]:
-    body = obs.truth["bodies"][0]
-    start = None
-    if case.velocity_start != 1.0:
-        name = obs.names[0]
-        start = {f"{name}.v0[{i}]": case.velocity_start * float(body["velocity"][i]) for i in range(3)}
-        start |= {f"{name}.omega0[{i}]": case.velocity_start * float(body["omega"][i]) for i in range(3)}
-    starts = None if case.stiffness_start is None else (case.stiffness_start * float(body["E"]),)
+    start = _throw(obs, case.velocity_start) if case.velocity_start != 1.0 else None
+    E = float(obs.truth["bodies"][0]["E"])
+    starts = None if case.stiffness_start is None else (case.stiffness_start * E,)
     return start, starts
 
 
@@ -287,26 +292,21 @@ def truth_floor(obs: Observation, res: int, iterations: int = 25, journal=None) 
     landing several millimetres), which no model can undo, so a drop to this floor is all a repair can give.
     None where the observation has no truth or no held-out frames. ``journal``: where the calibration is kept
     (a resumed table does not compute it again)."""
-    from causalgs.discover.calibrate import calibrate
     from causalgs.discover.model import PhysicsModel
 
     truth = obs.truth or {}
     if obs.clean is None or "effects_spec" not in truth or obs.observed >= len(obs.times):
         return None
     model = PhysicsModel(obs, truth["effects_spec"], (), res=res)
-    bodies = truth["bodies"]
     theta = model.initial()
-    for b, body in enumerate(bodies):
-        theta[model.index(f"{obs.names[b]}.E")] = model.E_internal(float(body["E"]))
-        theta[model.index(f"{obs.names[b]}.nu")] = model.nu_internal(float(body["nu"]))
-        for i in range(3):
-            for kind, key in (("v0", "velocity"), ("omega0", "omega")):
-                k = model.index(f"{obs.names[b]}.{kind}[{i}]")
-                theta[k] = model.knobs[k].internal(float(body[key][i]))
-    if journal is not None:
-        fit = journal.calibrate("truth floor", model, theta, iterations=iterations)
-    else:
-        fit = calibrate(model, theta, iterations=iterations)
+    for name, body in zip(obs.names, truth["bodies"], strict=True):
+        theta[model.index(f"{name}.E")] = model.E_internal(float(body["E"]))
+        theta[model.index(f"{name}.nu")] = model.nu_internal(float(body["nu"]))
+    for name, value in _throw(obs).items():
+        k = model.index(name)
+        theta[k] = model.knobs[k].internal(value)
+    journal = journal if journal is not None else Journal(None, "")
+    fit = journal.calibrate("truth floor", model, theta, iterations=iterations)
     x = np.concatenate([obs.x[:1], model.rollout(fit.theta).detach().numpy()])
     return truth_error(x, x, obs.clean, obs.observed)["future_rms_before_m"]
 
@@ -442,13 +442,12 @@ def summary(rows: list[dict]) -> dict:
 
     hidden = lambda r: r["kind"] in ("hidden", "pair")  # noqa: E731
     errs = [r["param_error"] for r in rows if r["kind"] == "hidden" and r["param_error"] is not None]
-    drops = [r["future_drop"] for r in rows if r["kind"] == "hidden" and r["first_ok"]]
-    excess = [r.get("excess_removed") for r in rows if r["kind"] == "hidden" and r["first_ok"]]
-    excess = [e for e in excess if e is not None]
-    truth = [r.get("future_truth_drop") for r in rows if r["kind"] == "hidden" and r["first_ok"]]
-    truth = [d for d in truth if d is not None]
-    above = [r.get("truth_excess_removed") for r in rows if r["kind"] == "hidden" and r["first_ok"]]
-    above = [e for e in above if e is not None]
+
+    def halved(key):  # the share of the hidden rows named first whose ``key`` (where given) is 50% or more
+        vals = [r.get(key) for r in rows if r["kind"] == "hidden" and r["first_ok"]]
+        vals = [v for v in vals if v is not None]
+        return (sum(v >= 0.5 for v in vals) / len(vals)) if vals else None
+
     return {
         "hidden_first": frac(hidden, "first_ok"),
         "hidden_in_set": frac(hidden, "in_set"),
@@ -456,10 +455,10 @@ def summary(rows: list[dict]) -> dict:
         # how often the reported 95% interval holds the true value (honest intervals: about 95%)
         "interval_covers_truth": frac(lambda r: r["kind"] == "hidden" and r.get("interval_covers") is not None,
                                       "interval_covers"),
-        "future_drop_ge_50pct": (sum(d >= 0.5 for d in drops) / len(drops)) if drops else None,
-        "excess_over_floor_removed_ge_50pct": (sum(e >= 0.5 for e in excess) / len(excess)) if excess else None,
-        "future_drop_vs_truth_ge_50pct": (sum(d >= 0.5 for d in truth) / len(truth)) if truth else None,
-        "excess_over_truth_floor_removed_ge_50pct": (sum(e >= 0.5 for e in above) / len(above)) if above else None,
+        "future_drop_ge_50pct": halved("future_drop"),
+        "excess_over_floor_removed_ge_50pct": halved("excess_removed"),
+        "future_drop_vs_truth_ge_50pct": halved("future_truth_drop"),
+        "excess_over_truth_floor_removed_ge_50pct": halved("truth_excess_removed"),
         "controls_no_effect": frac(lambda r: r["kind"] == "control", "first_ok"),
         "outside_unexplained": frac(lambda r: r["kind"] == "outside", "first_ok"),
         "runs": len(rows),

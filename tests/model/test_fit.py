@@ -1126,7 +1126,7 @@ def test_split_sigma_is_the_error_of_one_half_when_the_halves_err_independently(
 
 
 def test_the_lens_is_affine_only_where_held_out_cameras_ask_for_it():
-    from causalgs.discover.video import choose_lens
+    from causalgs.discover.video import AFFINE_AGREE, AFFINE_GAIN_DB, choose_lens
     from causalgs.model.refine import Tracks
 
     def tracks(psnr, stretch):
@@ -1139,8 +1139,6 @@ def test_the_lens_is_affine_only_where_held_out_cameras_ask_for_it():
     got = choose_lens(rigid, squashed)
     assert got["lens"] == "affine" and got["gain_db"] == pytest.approx(3.0) and got["agree"] == 1.0
     assert "affine" in got["text"]
-    from causalgs.discover.video import AFFINE_AGREE, AFFINE_GAIN_DB
-
     # the sentence states the rule it applied, in words: the gain asked and the share of frames asked
     assert f"a median gain of at least {AFFINE_GAIN_DB:.2f} dB and a gain on at least {AFFINE_AGREE:.0%}" in got["text"]
     impact = tracks([32.0] * 4 + [28.0] * 3 + [22.1, 21.8, 22.2, 21.9, 22.3], True)  # better at the impact only
