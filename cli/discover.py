@@ -256,12 +256,15 @@ def discover(source, out, spec, learn, candidates, max_effects, res, starts, ite
 @click.option("--level", type=click.Choice(["trajectory", "video"]), default="trajectory", show_default=True,
               help="trajectory: simulated particle tracks with noise (minutes a case); video: a rendered video, a "
                    "fit and discovery on the run, end to end (about 20 minutes a flight case on 2 cores).")
+@click.option("--rescore", is_flag=True,
+              help="Trajectory level: run nothing; score every row of --out/table.json again from its saved "
+                   "report.json (after a change of the scoring) and rewrite the table.")
 @click.option("--merge", "merge", multiple=True, type=click.Path(exists=True, file_okay=False, path_type=Path),
               help="Video level: run nothing; collect the rows of these tables (repeat the option; one table run in "
                    "pieces with --only and --first-seed) into --out, each row taken only where its video was "
                    "rendered as the case is defined now, a later table's row replacing an earlier one.")
 def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, jobs, workers, rigid_tracks, lens,
-                   stretch, weigh, retry_failed, level, merge):
+                   stretch, weigh, retry_failed, level, rescore, merge):
     """Reproduce the hidden-effect table: for every effect of the catalogue, a tossed block simulated with it and
     a model without it; negative controls; an effect outside the catalogue.
 
@@ -281,6 +284,21 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
     from causalgs import _ti
     from causalgs.discover.search import DiscoverConfig
 
+    if rescore:
+        from causalgs.discover.table import rescore as rescore_table
+        from causalgs.discover.table import summary
+        from causalgs.io import read_json
+
+        if not (out / "table.json").is_file():
+            raise CausalGSError(f"--rescore: no table in {out} (no {out / 'table.json'})")
+        saved = read_json(out / "table.json", "table")
+        if saved.get("level", "trajectory") == "video":
+            raise CausalGSError(f"--rescore scores trajectory tables; {out / 'table.json'} holds a video table, "
+                                f"whose rows also carry its fits' and tracks' errors")  # fmt: skip
+        rows = rescore_table(out)
+        click.echo(json.dumps(summary(rows)))
+        click.echo(f"Wrote {out / 'table.md'} ({len(rows)} rows scored again)")
+        return
     if merge:
         if level != "video":
             raise CausalGSError("--merge collects video tables: add --level video")

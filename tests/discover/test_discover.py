@@ -376,6 +376,16 @@ def test_table_resumes_and_records_failures(tmp_path, monkeypatch):
     again = T.rescore(tmp_path)  # scored anew from the saved reports, nothing run
     assert len(again) == 6 and len(calls) == 7
     assert json.loads((tmp_path / "table.json").read_text())["rows"] == saved["rows"]
+    r = CliRunner().invoke(cli, ["discover-table", "--out", str(tmp_path), "--rescore"])  # the same, from the CLI
+    assert r.exit_code == 0, r.output
+    assert "6 rows scored again" in r.output and json.loads(r.output.splitlines()[0])["runs"] == 6
+    assert json.loads((tmp_path / "table.json").read_text())["rows"] == saved["rows"] and len(calls) == 7
+    r = CliRunner().invoke(cli, ["discover-table", "--out", str(tmp_path / "none"), "--rescore"])
+    assert r.exit_code != 0 and "no table in" in r.output and "Traceback" not in r.output
+    (tmp_path / "v").mkdir()
+    (tmp_path / "v" / "table.json").write_text(json.dumps({**saved, "level": "video"}))
+    r = CliRunner().invoke(cli, ["discover-table", "--out", str(tmp_path / "v"), "--rescore"])
+    assert r.exit_code != 0 and "holds a video table" in r.output
     assert saved["level"] == "trajectory"
     with pytest.raises(CausalGSError, match="of the trajectory level, not of the trajectory, rigid tracks level"):
         T.run_table(tmp_path, T.TableConfig(only=("control", "outside"), rigid=True))  # rows of two measurements
