@@ -65,6 +65,26 @@ def _rms_curve(sim: np.ndarray, obs: Observation) -> np.ndarray:
     return np.sqrt(((sim - obs.x[1:]) ** 2).sum(-1).mean(-1))
 
 
+def _after_label(report: dict) -> str:
+    """The repaired model's curve: every effect added, or for an ambiguity set the first one (the model the repair
+    keeps) with the candidates the data could not tell from it."""
+    if report["discovered"]:
+        return "after: " + " + ".join(d["effect"] for d in report["discovered"])
+    first, *rest = [a["effect"] for a in report["ambiguous"]]
+    return f"after: {first}" + (f" (not told apart from {', '.join(rest)})" if rest else "")
+
+
+def _plain_log_ticks(ax) -> None:
+    """Millimetres as plain numbers on a log axis (6, 8, 10 rather than 6×10⁰); the ticks between the decades are
+    labelled only where the axis spans less than a decade and a half, as there they are the only labels."""
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
+    plain = FuncFormatter(lambda v, _: f"{v:g}")
+    ax.yaxis.set_major_formatter(plain)
+    lo, hi = ax.get_ylim()
+    ax.yaxis.set_minor_formatter(plain if hi < 30 * lo else NullFormatter())
+
+
 def plot_error(report: dict, traj: dict, obs: Observation, path: Path) -> None:
     plt = _plt()
     frames = np.arange(1, len(obs.times))
@@ -72,8 +92,7 @@ def plot_error(report: dict, traj: dict, obs: Observation, path: Path) -> None:
     ax.axvspan(0, obs.observed - 0.5, color="0.92", label="fit window")
     ax.plot(frames, 1000 * _rms_curve(traj["before"], obs), color="tab:red", lw=1.6, label="before")
     if report["discovered"] or report["ambiguous"]:
-        ax.plot(frames, 1000 * _rms_curve(traj["after"], obs), color="tab:blue", lw=1.6,
-                label="after: " + " + ".join(d["effect"] for d in report["discovered"] or report["ambiguous"]))
+        ax.plot(frames, 1000 * _rms_curve(traj["after"], obs), color="tab:blue", lw=1.6, label=_after_label(report))
     floor = report["disagreement"]["floor"]
     ax.axhline(1000 * floor, color="0.4", ls=":", lw=1, label="noise floor")
     blind = np.asarray(report["disagreement"].get("blind") or [])
@@ -87,10 +106,11 @@ def plot_error(report: dict, traj: dict, obs: Observation, path: Path) -> None:
         ax.annotate(text, (dep["frame"], ax.get_ylim()[1]), xytext=(4, -4), textcoords="offset points", va="top",
                     fontsize=8)  # fmt: skip
     ax.set_yscale("log")
+    _plain_log_ticks(ax)
     ax.set_xlabel("frame")
     ax.set_ylabel("RMS distance (mm)")
     ax.set_title(f"simulation vs measurement — {report['verdict']}")
-    ax.legend(fontsize=8, loc="lower right")
+    ax.legend(fontsize=8, loc="best")
     ax.grid(alpha=0.3, which="both")
     _save(fig, path)
 
@@ -315,7 +335,8 @@ def markdown(report: dict) -> str:
           "| | fit window | held-out future |", "|---|---|---|",
           f"| before | {_mm(eb['fit_rms_m'])} | {_mm(eb['future_rms_m'])} |",
           f"| after | {_mm(ea['fit_rms_m'])} | {_mm(ea['future_rms_m'])} |", "",
-          f"Held-out error change: {-100 * drop:+.0f}%. Noise per coordinate: {_mm(report['noise'])}.", ""]  # fmt: skip
+          f"Held-out error change: {_signed(-100 * drop, '.0f')}%. Noise per coordinate: {_mm(report['noise'])}.",
+          ""]  # fmt: skip
     if weighed:
         L[-1:] = [f"Weighted as the calibrations and the gate weigh them (per coordinate; below): fit window "
                   f"{_mm(fit_w)} → {_mm(ea['fit_rms_weighted_m'])}, held-out future {_mm(fut_w)} → "
@@ -337,7 +358,9 @@ def markdown(report: dict) -> str:
     else:
         L.append("- the error never rises above three times the noise floor")
     bc = dis.get("by_contact", {})
-    L.append("- RMS by contact state: " + ", ".join(f"{k} {_mm(v)}" for k, v in bc.items()))
+    if any(v is not None for v in bc.values()):  # distances, as the plots; the table above is per coordinate
+        L.append("- error by contact state over every frame (RMS distance, as the plots): "
+                 + ", ".join(f"{k} {_mm(v)}" for k, v in bc.items() if v is not None))  # fmt: skip
     sig = dis.get("signatures", {})
     if sig:
         L.append("- residual acceleration explained by each driver: "

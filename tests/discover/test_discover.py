@@ -505,6 +505,9 @@ def test_the_report_says_how_each_other_passer_was_told_apart():
     # what decided comes first; a signature that hardly shows the effect is said to be so
     assert "evidence: held-out RMS −83%; ΔBIC −690.4; linear_drag.c at 30.2 SE; its signature `v` explains 4%" in text
     assert "(the smoothed accelerations do not show it; the refit does)" in text
+    assert "Held-out error change: −" in text and "by contact state" not in text  # no contact states: no line
+    rep["disagreement"]["by_contact"] = {"ground contact": None, "flight": 0.0123}
+    assert "- error by contact state over every frame (RMS distance, as the plots): flight 12.30 mm\n" in markdown(rep)
     d["evidence"]["signature_share"] = 0.9
     assert "explains 90% of the residual acceleration\n" in markdown(rep)
     # where the tracks' and the shape's errors widen the spread, the z over every source is said too
@@ -619,6 +622,32 @@ def test_the_error_plot_shows_the_deformation_the_tracks_cannot_follow(monkeypat
     (curve,) = lines[2]
     assert np.allclose(curve.get_ydata(), 1000 * np.sqrt(3) * np.array([1e-6, 1e-6, 0.004, 0.001]))
     assert list(curve.get_xdata()) == [1, 2, 3, 4]
+
+
+def test_the_error_plot_names_the_model_it_draws_and_labels_millimetres_plainly(monkeypatch, tmp_path):
+    """The repaired curve of an ambiguity set is its first candidate's model (the one the repair keeps), said to be
+    not told apart from the others, not their sum; the log axis reads in plain millimetres."""
+    from causalgs.discover import report as rp
+
+    figs = []
+    monkeypatch.setattr(rp, "_save", lambda fig, path: figs.append(fig))
+    obs = Observation(times=np.arange(5) / 60.0, x=np.zeros((5, 2, 3)), vol=np.ones(2), body=np.zeros(2),
+                      observed=3, lo=(-1, -1, -1), hi=(1, 1, 1))  # fmt: skip
+    traj = {"before": np.full((4, 2, 3), 0.006), "after": np.full((4, 2, 3), 0.004)}
+    amb = {**_fake_report(None, verdict="ambiguous"),
+           "ambiguous": [{"effect": "linear_drag"}, {"effect": "quadratic_drag"}]}  # fmt: skip
+    found = _fake_report("linear_drag", 0.6)
+    found["discovered"].append({"effect": "force"})
+    for rep in (amb, found):
+        rp.plot_error(rep, traj, obs, tmp_path / "error.png")
+    labels = [[ln.get_label() for ln in fig.axes[0].get_lines()] for fig in figs]
+    assert "after: linear_drag (not told apart from quadratic_drag)" in labels[0]
+    assert "after: linear_drag + force" in labels[1]
+    ax = figs[0].axes[0]
+    ax.figure.canvas.draw()
+    shown = [t.get_text() for t in ax.yaxis.get_ticklabels(which="both") if t.get_text()]
+    assert shown and all("10^" not in t and "times" not in t for t in shown), shown
+    assert all(float(t) > 0 for t in shown)
 
 
 def test_the_report_says_when_the_base_was_recalibrated_from_a_refit():
