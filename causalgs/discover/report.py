@@ -241,8 +241,14 @@ def markdown(report: dict) -> str:
             hint = (f"its signature `{ev['signature']}` explains {_pct(share)} of the residual acceleration"
                     + (" (the smoothed accelerations do not show it; the refit does)"
                        if share is not None and share < SIGNATURE_WEAK else ""))  # fmt: skip
+            if share is None:  # a driver the residual accelerations have no measure of (a yield: a lasting strain)
+                hint = f"its signature `{ev['signature']}` is not one the residual accelerations measure"
             against = ev.get("against", "base")
             L += [f"- **{d['law']}**"]
+            true = {p: true_value(report.get("truth"), p) for p in d["params"]}
+            if report.get("truth") and all(v is not None for v in true.values()):
+                L.append("  - the scene's truth (a synthetic scene): "
+                         + ", ".join(f"{p.split('.', 1)[1]} = {v:.4g}" for p, v in true.items()))  # fmt: skip
             was = d.get("found_as")
             if was:
                 later = ", ".join(f"`{e}`" for e in d["refitted_with"])
@@ -486,12 +492,18 @@ def markdown(report: dict) -> str:
               "left to explain (a further effect could only fit the noise).", ""]  # fmt: skip
     if report["discovered"]:
         d0 = report["discovered"][0]
-        L += ["## Base parameters before and after (the missing effect biases them)", "",
-              "| parameter | before | after |", "|---|---|---|"]  # fmt: skip
         before, after = d0["base_before"], report["discovered"][-1]["base_after"]
+        truth = report.get("truth")
+        keys = list({**before, **after})
+        # a synthetic scene's truth beside them, where it holds any of these parameters
+        known = truth is not None and any(true_value(truth, k) is not None for k in keys)
+        L += ["## Base parameters before and after (the missing effect biases them)", "",
+              "| parameter | before | after |" + (" truth |" if known else ""),
+              "|---|---|---|" + ("---|" if known else "")]  # fmt: skip
         # a structural effect replaces a base term (sticky ground the Coulomb ground): its parameters are in one
         # model only, shown as "—" in the other
-        L += [f"| {k} | {_cell(before, k)} | {_cell(after, k)} |" for k in {**before, **after}]
+        L += [f"| {k} | {_cell(before, k)} | {_cell(after, k)} |" + (f" {_truth_cell(truth, k)} |" if known else "")
+              for k in keys]  # fmt: skip
         gone = [k for k in before if k not in after]
         if gone:
             L += ["", f"The repaired model has no {' or '.join(f'`{k}`' for k in gone)}: a discovered effect "
@@ -514,6 +526,36 @@ def _round_row(s: dict, r: dict | None) -> str:
         return f"| {s['effect']} | {s['gain']:.3f} | failed: {r['error']} | no | |"
     return (f"| {s['effect']} | {s['gain']:.3f} | {r['future_mse_cm2']:.3g} | {'yes' if r['passed'] else 'no'} | "
             f"{'; '.join(r['reasons'])} |")
+
+
+_BODY_KEYS = {"E": "E", "nu": "nu", "v0": "velocity", "omega0": "omega"}
+
+
+def true_value(truth: dict | None, key: str) -> float | None:
+    """A model parameter's true value (``block.E``, ``block.v0[0]``, ``ground.mu``, ``force.b[1]``) from the truth
+    a synthetic observation carries (``report["truth"]``); 0.0 for a parameter of an effect the truth has not;
+    None where there is no truth or it does not hold that parameter."""
+    if not truth:
+        return None
+    owner, _, name = key.partition(".")
+    name, _, index = name.partition("[")
+    i = int(index.rstrip("]")) if index else 0
+    body = next((b for b in truth.get("bodies", []) if b.get("name") == owner), None)
+    if body is not None:
+        v = body.get(_BODY_KEYS.get(name, name))
+    else:
+        effects = truth.get("effects") or {}
+        if owner not in effects:
+            return 0.0 if effects and "." in key else None
+        v = effects[owner].get(name)
+    if isinstance(v, list | tuple):
+        v = v[i] if i < len(v) else None
+    return float(v) if isinstance(v, int | float) else None
+
+
+def _truth_cell(truth: dict | None, key: str) -> str:
+    v = true_value(truth, key)
+    return "—" if v is None else f"{v:.4g}"
 
 
 def _cell(values: dict, key: str) -> str:

@@ -624,6 +624,38 @@ def test_the_error_plot_shows_the_deformation_the_tracks_cannot_follow(monkeypat
     assert list(curve.get_xdata()) == [1, 2, 3, 4]
 
 
+def test_a_synthetic_scenes_report_puts_its_truth_beside_what_was_found():
+    """Where the observation carries its truth (a synthetic scene), report.md says the true value of each found
+    parameter and a truth column beside the base parameters before and after; without a truth, neither."""
+    from causalgs.discover.report import markdown, true_value
+
+    truth = {"effects": {"gravity": {"g": [0.0, 0.0, -9.8]}, "ground": {"mu": [0.3]},
+                         "linear_drag": {"c": [0.6]}},
+             "bodies": [{"name": "block", "E": 38255.1, "nu": 0.3, "velocity": [0.82, 0.02, 1.16],
+                         "omega": [0.0, 0.0, 0.0]}]}  # fmt: skip
+    assert true_value(truth, "block.E") == 38255.1 and true_value(truth, "block.v0[2]") == 1.16
+    assert true_value(truth, "block.omega0[1]") == 0.0 and true_value(truth, "ground.mu") == 0.3
+    assert true_value(truth, "linear_drag.c") == 0.6
+    assert true_value(truth, "force.b[0]") == 0.0  # an effect the truth has not: its parameters are zero
+    assert true_value(truth, "block.density_scale") is None and true_value(None, "block.E") is None
+    rep = _fake_report("linear_drag", 0.6032)
+    d = rep["discovered"][0]
+    d.update(law="linear drag: a = −c·v, c = 0.6032 [0.548, 0.66]",
+             evidence={"signature": "v", "signature_share": 0.99, "future_drop": 0.7, "delta_bic": -114.6,
+                       "z": {"linear_drag.c": 30.0}},
+             base_before={"block.E": 3.5e4, "ground.mu": 0.43}, base_after={"block.E": 3.8e4, "ground.mu": 0.29,
+                                                                           "linear_drag.c": 0.6032})  # fmt: skip
+    plain = markdown(rep)
+    assert "| parameter | before | after |\n" in plain and "truth" not in plain
+    text = markdown({**rep, "truth": truth})
+    assert "  - the scene's truth (a synthetic scene): c = 0.6\n" in text
+    assert "| parameter | before | after | truth |" in text
+    assert "| block.E | 3.5e+04 | 3.8e+04 | 3.826e+04 |" in text and "| linear_drag.c | — | 0.6032 | 0.6 |" in text
+    d["evidence"].update(signature="plastic", signature_share=None)  # a driver the accelerations do not measure
+    text = markdown(rep)
+    assert "its signature `plastic` is not one the residual accelerations measure" in text and "n/a" not in text
+
+
 def test_the_error_plot_names_the_model_it_draws_and_labels_millimetres_plainly(monkeypatch, tmp_path):
     """The repaired curve of an ambiguity set is its first candidate's model (the one the repair keeps), said to be
     not told apart from the others, not their sum; the log axis reads in plain millimetres."""
