@@ -543,6 +543,8 @@ def true_value(truth: dict | None, key: str) -> float | None:
     body = next((b for b in truth.get("bodies", []) if b.get("name") == owner), None)
     if body is not None:
         v = body.get(_BODY_KEYS.get(name, name))
+    elif name in _BODY_KEYS:  # a body's parameter, of a body the truth does not name
+        return None
     else:
         effects = truth.get("effects") or {}
         if owner not in effects:

@@ -476,7 +476,7 @@ def markdown(rows: list[dict]) -> str:
             err = "—"
         else:
             err = (f"{1000 * r['future_rms_before_m']:.1f} → {1000 * r['future_rms_after_m']:.1f} mm "
-                   f"({-100 * r['future_drop']:+.0f}%)")  # fmt: skip
+                   f"({change(r['future_drop'])})")  # fmt: skip
         floor = "—" if r.get("floor_rms_m") is None else f"{1000 * r['floor_rms_m']:.1f} mm"
         ex = "—" if r.get("excess_removed") is None else f"{100 * r['excess_removed']:.0f}%"
         cov = {True: "yes", False: "no"}.get(r.get("interval_covers"), "—")
@@ -485,11 +485,18 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(L + goals(rows)) + "\n"
 
 
+def change(drop: float) -> str:
+    """A drop of the error as the tables print its change: "−80%", "+12%", and "±0%" where it rounds to none
+    (the minus the typographic one, as in the reports)."""
+    text = f"{-100 * drop:+.0f}"
+    return "±0%" if text in ("+0", "-0") else text.replace("-", "\u2212") + "%"
+
+
 def vs_truth(r: dict) -> str:
     """A row's held-out error against the truth, before → after (mm), as the tables print it."""
     if r.get("future_truth_before_m") is None or r.get("future_truth_after_m") is None:
         return "—"
-    drop = "" if r.get("future_truth_drop") is None else f" ({-100 * r['future_truth_drop']:+.0f}%)"
+    drop = "" if r.get("future_truth_drop") is None else f" ({change(r['future_truth_drop'])})"
     t_floor = r.get("future_truth_floor_m")
     floor = "" if t_floor is None else f"; the truth's physics {1000 * t_floor:.1f} mm"
     return f"{1000 * r['future_truth_before_m']:.1f} → {1000 * r['future_truth_after_m']:.1f} mm{drop}{floor}"

@@ -64,6 +64,39 @@ def _load(run_dir):
     return _LOADED[key]
 
 
+def synthetic_truth(root: Path, obs: Observation, within: float = 0.05) -> dict | None:
+    """What a synthetic scene's dataset records of its truth (``causalgs synth``: ``gt/meta.json``), in the terms
+    of a report (:func:`causalgs.discover.report.true_value`): the true effects, and each tracked body's material
+    and throw where one of the scene's moving objects starts within ``within`` m of that body's first-frame
+    centroid, and no other body claims it. None for a dataset without a truth (a user's own video)."""
+    import json
+
+    path = root / "gt" / "meta.json"
+    if not path.is_file():
+        return None
+    try:
+        meta = json.loads(path.read_text())
+        effects = meta["motion"]["effects"]
+        objects = [o for o in meta.get("objects", []) if o.get("kind") != "static" and "center" in o]
+    except (ValueError, KeyError, TypeError):
+        return None  # a truth that cannot be read is no truth; the report just goes without it
+    centres = np.array([o["center"] for o in objects], dtype=np.float64).reshape(-1, 3)
+    bodies = []
+    for b, name in enumerate(obs.names):
+        if not len(centres):
+            break
+        d = np.linalg.norm(centres - obs.x[0][obs.body == b].mean(0), axis=1)
+        near = int(np.argmin(d))
+        if d[near] < within and int(np.sum(d < within)) == 1:
+            o = objects[near]
+            bodies.append({"name": name, "object": o.get("name"),
+                           **{k: o[k] for k in ("E", "nu", "density", "velocity", "omega") if k in o}})  # fmt: skip
+    if len({b["object"] for b in bodies}) < len(bodies):  # two bodies on one object: neither is that object
+        bodies = []
+    return {"scene": meta.get("scene"), "effects_spec": meta["motion"].get("effects_spec"), "effects": effects,
+            "bodies": bodies, "source": str(path)}
+
+
 def refined_together(run_dir, model, data, tl, specs: list[tuple], workers: int, steps: list) -> list:
     """The tracks of every (config, half, frames) of ``specs`` (:func:`~causalgs.model.refine.cached_tracks`), in
     order. With ``workers`` > 1, of those the run does not hold yet all but the first are refined at once in worker
@@ -224,6 +257,7 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = C
                       shape_resolution=0.5 * float(model.cell),
                       # tracks err smoothly, more where the halves disagree more (without them: alike everywhere)
                       drift=drift, disagreement=None if xa is None else disagreement(x, xa, body))  # fmt: skip
+    obs.truth = synthetic_truth(Path(data.root), obs)
     pixel = pixel_footprint(data.train, x[0].mean(0))
     obs.noise = max(noise_floor(obs), RESOLVE * pixel, SPLIT * split_m if split_m is not None else 0.0)
     if stretch and xa is not None:  # rigid tracks: the stretching ones where the bodies deform (the rigid noise)

@@ -315,7 +315,7 @@ def markdown(rows: list[dict]) -> str:
         mark = "✓" if r["first_ok"] else "✗"
         err = "—"
         if r["future_rms_before_m"] is not None:
-            err = f"{mm(r['future_rms_before_m'])} → {mm(r['future_rms_after_m'])} ({-100 * r['future_drop']:+.0f}%)"
+            err = f"{mm(r['future_rms_before_m'])} → {mm(r['future_rms_after_m'])} ({table.change(r['future_drop'])})"
         db = "—"
         if r.get("psnr_before") is not None:
             db = f"{r['psnr_before']:.2f} → {r['psnr_after']:.2f}"

@@ -298,7 +298,8 @@ def test_table_rows_score_what_was_found_against_what_was_hidden():
     scored = score_row(drag, {**_fake_report("linear_drag", 0.63), "truth_error": truth})
     assert math.isclose(scored["future_truth_drop"], 0.8)
     assert summary([{**scored, "seed": 0}])["future_drop_vs_truth_ge_50pct"] == 1.0
-    assert "| 4.0 → 0.8 mm (-80%) |" in T.markdown([{**scored, "seed": 0}])
+    assert "| 4.0 → 0.8 mm (−80%) |" in T.markdown([{**scored, "seed": 0}])
+    assert [T.change(d) for d in (0.8, -0.12, 0.001, -0.004)] == ["−80%", "+12%", "±0%", "±0%"]
 
 
 def test_a_row_with_two_hidden_effects_needs_both_named_each_with_its_parameter():
@@ -450,7 +451,7 @@ def test_the_truths_own_physics_calibrated_from_the_measurement_is_the_floor_a_r
     row = T.score(T.BY_NAME["linear_drag"], {**_fake_report("linear_drag", 0.6), "truth_error": truth})
     assert row["future_truth_drop"] < 0.5 and row["truth_excess_removed"] == 1.0
     assert T.summary([{**row, "seed": 1}])["excess_over_truth_floor_removed_ge_50pct"] == 1.0
-    assert "| 4.0 → 2.1 mm (-48%); the truth's physics 2.5 mm |" in T.markdown([{**row, "seed": 1}])
+    assert "| 4.0 → 2.1 mm (−48%); the truth's physics 2.5 mm |" in T.markdown([{**row, "seed": 1}])
 
 
 def test_the_repair_is_judged_on_the_error_above_the_noise_floor():

@@ -59,3 +59,43 @@ def test_a_pull_outside_the_catalogue_is_not_given_a_name(tmp_path):
     assert not rep["discovered"] and not rep["ambiguous"]
     force = next(x for x in rep["rounds"][0]["refits"] if x["effect"] == "force")
     assert not force["passed"] and any("held-out" in why for why in force["reasons"]), force["reasons"]
+
+
+def test_a_synthetic_datasets_truth_is_matched_to_the_tracked_bodies(tmp_path):
+    """synthetic_truth reads gt/meta.json of a `causalgs synth` dataset: the true effects, and each tracked body's
+    material and throw from the moving object that starts at its centroid (one object to one body); no truth for a
+    dataset without one or with one that cannot be read, and no body where the match is not one to one."""
+    import numpy as np
+
+    from causalgs.discover.observation import Observation
+    from causalgs.discover.report import true_value
+    from causalgs.discover.video import synthetic_truth
+
+    x = np.zeros((4, 4, 3))
+    x[:, :2] += [0.3, 0.0, 0.2]  # body 0 around (0.3, 0, 0.2), body 1 around (-0.3, 0, 0.2)
+    x[:, 2:] += [-0.3, 0.0, 0.2]
+    x[0, [0, 2], 0] += 0.01
+    x[0, [1, 3], 0] -= 0.01
+    obs = Observation(times=np.arange(4) / 60.0, x=x, vol=np.ones(4), body=np.array([0, 0, 1, 1]), observed=3,
+                      lo=(-1, -1, -1), hi=(1, 1, 1), names=["body 0", "body 1"])  # fmt: skip
+    assert synthetic_truth(tmp_path, obs) is None  # a user's own video: no truth
+    meta = {"scene": "pair", "motion": {"effects": {"gravity": {"g": [0, 0, -9.8]}, "linear_drag": {"c": [0.6]}},
+                                        "effects_spec": "gravity;linear_drag:c=0.6"},
+            "objects": [{"name": "floor", "kind": "static"},
+                        {"name": "left", "kind": "elastic", "center": [-0.3, 0.0, 0.21], "E": 2e4, "nu": 0.3,
+                         "velocity": [1.0, 0.0, 0.5], "omega": [0.0, 0.0, 1.0]},
+                        {"name": "right", "kind": "elastic", "center": [0.31, 0.0, 0.2], "E": 5e4, "nu": 0.25,
+                         "velocity": [-1.0, 0.0, 0.5], "omega": [0.0, 0.0, 0.0]}]}  # fmt: skip
+    (tmp_path / "gt").mkdir()
+    (tmp_path / "gt" / "meta.json").write_text(json.dumps(meta))
+    truth = synthetic_truth(tmp_path, obs)
+    assert [(b["name"], b["object"]) for b in truth["bodies"]] == [("body 0", "right"), ("body 1", "left")]
+    assert true_value(truth, "body 0.E") == 5e4 and true_value(truth, "body 1.v0[0]") == 1.0
+    assert true_value(truth, "body 1.omega0[2]") == 1.0 and true_value(truth, "linear_drag.c") == 0.6
+    assert true_value(truth, "ground.mu") == 0.0  # not in the truth: the scene has no friction
+    meta["objects"][1]["center"] = [0.3, 0.0, 0.22]  # both objects start at body 0: no body is matched
+    (tmp_path / "gt" / "meta.json").write_text(json.dumps(meta))
+    truth = synthetic_truth(tmp_path, obs)
+    assert truth["bodies"] == [] and true_value(truth, "body 0.E") is None
+    (tmp_path / "gt" / "meta.json").write_text("{not json")
+    assert synthetic_truth(tmp_path, obs) is None
