@@ -287,14 +287,7 @@ def discover_table(out, seeds, first_seed, only, control_seeds, res, run_grid, j
     if rescore:
         from causalgs.discover.table import rescore as rescore_table
         from causalgs.discover.table import summary
-        from causalgs.io import read_json
 
-        if not (out / "table.json").is_file():
-            raise CausalGSError(f"--rescore: no table in {out} (no {out / 'table.json'})")
-        saved = read_json(out / "table.json", "table")
-        if saved.get("level", "trajectory") == "video":
-            raise CausalGSError(f"--rescore scores trajectory tables; {out / 'table.json'} holds a video table, "
-                                f"whose rows also carry its fits' and tracks' errors")  # fmt: skip
         rows = rescore_table(out)
         click.echo(json.dumps(summary(rows)))
         click.echo(f"Wrote {out / 'table.md'} ({len(rows)} rows scored again)")

@@ -517,7 +517,12 @@ def rescore(out) -> list[dict]:
     from causalgs.io import read_json
 
     out = Path(out)
+    if not (out / "table.json").is_file():
+        raise CausalGSError(f"no table in {out} to score again (no {out / 'table.json'})")
     saved = read_json(out / "table.json", "table")
+    if saved.get("level", "trajectory") == "video":
+        raise CausalGSError(f"only trajectory tables are scored again; {out / 'table.json'} holds a video table, "
+                            f"whose rows also carry its fits' and tracks' errors")  # fmt: skip
     rows = []
     for r in saved.get("rows", []):
         path = out / f"{_slug(r['case'])}-s{r['seed']}" / "report.json"

@@ -64,31 +64,32 @@ def _load(run_dir):
     return _LOADED[key]
 
 
-def synthetic_truth(root: Path, obs: Observation, within: float = 0.05) -> dict | None:
+def synthetic_truth(root: Path, obs: Observation, reach: float = 0.03) -> dict | None:
     """What a synthetic scene's dataset records of its truth (``causalgs synth``: ``gt/meta.json``), in the terms
     of a report (:func:`causalgs.discover.report.true_value`): the true effects, and each tracked body's material
-    and throw where one of the scene's moving objects starts within ``within`` m of that body's first-frame
-    centroid, and no other body claims it. None for a dataset without a truth (a user's own video)."""
-    import json
+    and throw where most of its first-frame points lie on one of the scene's objects
+    (:func:`causalgs.model.recovery.true_objects`, as a fit's recovery report assigns its Gaussians) and no other
+    body claims that object. None for a dataset without a truth (a user's own video) or with one that cannot be
+    read: the report then goes without it."""
+    from causalgs.io import read_json
+    from causalgs.model.recovery import true_objects
 
     path = root / "gt" / "meta.json"
     if not path.is_file():
         return None
     try:
-        meta = json.loads(path.read_text())
+        meta = read_json(path, "ground truth")
         effects = meta["motion"]["effects"]
-        objects = [o for o in meta.get("objects", []) if o.get("kind") != "static" and "center" in o]
-    except (ValueError, KeyError, TypeError):
-        return None  # a truth that cannot be read is no truth; the report just goes without it
-    centres = np.array([o["center"] for o in objects], dtype=np.float64).reshape(-1, 3)
+        objects = {o["id"]: o for o in meta.get("objects", []) if "E" in o}
+    except (CausalGSError, KeyError, TypeError):
+        return None
+    label = true_objects(obs.x[0], root, reach)
     bodies = []
-    for b, name in enumerate(obs.names):
-        if not len(centres):
-            break
-        d = np.linalg.norm(centres - obs.x[0][obs.body == b].mean(0), axis=1)
-        near = int(np.argmin(d))
-        if d[near] < within and int(np.sum(d < within)) == 1:
-            o = objects[near]
+    for b, name in enumerate(obs.names if label is not None else []):
+        ids, counts = np.unique(label[obs.body == b], return_counts=True)
+        top = int(np.argmax(counts))
+        if int(ids[top]) in objects and 2 * counts[top] > counts.sum():
+            o = objects[int(ids[top])]
             bodies.append({"name": name, "object": o.get("name"),
                            **{k: o[k] for k in ("E", "nu", "density", "velocity", "omega") if k in o}})  # fmt: skip
     if len({b["object"] for b in bodies}) < len(bodies):  # two bodies on one object: neither is that object

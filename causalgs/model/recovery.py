@@ -24,20 +24,18 @@ from causalgs.io import read_json
 def recovery_report(physics_npz, data_dir, reach: float = 0.03) -> dict | None:
     """The report described in the module docstring, or None when the dataset has no ground-truth motion."""
     data_dir = Path(data_dir)
-    meta_path, motion_path = data_dir / "gt" / "meta.json", data_dir / "gt" / "motion.npz"
-    if not (meta_path.is_file() and motion_path.is_file()):
+    meta_path = data_dir / "gt" / "meta.json"
+    if not meta_path.is_file():
         return None
-    meta = read_json(meta_path, "ground truth")
-    with np.load(motion_path) as z:
-        if "particles_rest" not in z or "particle_object" not in z:
-            return None
-        rest, owner = z["particles_rest"], z["particle_object"]
     with np.load(physics_npz) as z:
         means, dyn = z["means"], z["dynamic"].astype(bool)
         vel, E, nu, rho = z["velocity"], z["E"], z["nu"], z["density"]
+    label = true_objects(means, data_dir, reach)
+    if label is None:
+        return None
+    meta = read_json(meta_path, "ground truth")
     objects = {o["id"]: o for o in meta.get("objects", []) if "E" in o}
-    dist, idx = cKDTree(rest).query(means)
-    label = np.where((dist < reach) & dyn, owner[idx], -1)
+    label = np.where(dyn, label, -1)
     rows = []
     for oid, o in sorted(objects.items()):
         sel = label == oid
@@ -70,6 +68,20 @@ def recovery_report(physics_npz, data_dir, reach: float = 0.03) -> dict | None:
     unassigned = int((dyn & (label < 0)).sum())
     return {"objects": rows, "stiffness_order_ok": order_ok, "dynamic_gaussians_unassigned": unassigned,
             "reach_m": reach}  # fmt: skip
+
+
+def true_objects(points, data_dir, reach: float = 0.03) -> np.ndarray | None:
+    """Each of ``points``' [n, 3] true object id: the object of the nearest true particle at rest
+    (``gt/motion.npz``; a scene starts at rest), -1 farther than ``reach`` metres; None without ground-truth motion."""
+    motion_path = Path(data_dir) / "gt" / "motion.npz"
+    if not motion_path.is_file():
+        return None
+    with np.load(motion_path) as z:
+        if "particles_rest" not in z or "particle_object" not in z:
+            return None
+        rest, owner = z["particles_rest"], z["particle_object"]
+    dist, idx = cKDTree(rest).query(np.asarray(points, dtype=np.float64))
+    return np.where(dist < reach, owner[idx], -1)
 
 
 def rigid_spin(r: np.ndarray, v: np.ndarray) -> np.ndarray | None:

@@ -63,8 +63,9 @@ def test_a_pull_outside_the_catalogue_is_not_given_a_name(tmp_path):
 
 def test_a_synthetic_datasets_truth_is_matched_to_the_tracked_bodies(tmp_path):
     """synthetic_truth reads gt/meta.json of a `causalgs synth` dataset: the true effects, and each tracked body's
-    material and throw from the moving object that starts at its centroid (one object to one body); no truth for a
-    dataset without one or with one that cannot be read, and no body where the match is not one to one."""
+    material and throw from the object most of its first-frame points lie on (gt/motion.npz, one object to one
+    body); no truth for a dataset without one or with one that cannot be read, and no body where the match is not
+    one to one."""
     import numpy as np
 
     from causalgs.discover.observation import Observation
@@ -81,20 +82,25 @@ def test_a_synthetic_datasets_truth_is_matched_to_the_tracked_bodies(tmp_path):
     assert synthetic_truth(tmp_path, obs) is None  # a user's own video: no truth
     meta = {"scene": "pair", "motion": {"effects": {"gravity": {"g": [0, 0, -9.8]}, "linear_drag": {"c": [0.6]}},
                                         "effects_spec": "gravity;linear_drag:c=0.6"},
-            "objects": [{"name": "floor", "kind": "static"},
-                        {"name": "left", "kind": "elastic", "center": [-0.3, 0.0, 0.21], "E": 2e4, "nu": 0.3,
+            "objects": [{"id": 1, "name": "floor", "kind": "static"},
+                        {"id": 2, "name": "left", "kind": "elastic", "E": 2e4, "nu": 0.3,
                          "velocity": [1.0, 0.0, 0.5], "omega": [0.0, 0.0, 1.0]},
-                        {"name": "right", "kind": "elastic", "center": [0.31, 0.0, 0.2], "E": 5e4, "nu": 0.25,
+                        {"id": 3, "name": "right", "kind": "elastic", "E": 5e4, "nu": 0.25,
                          "velocity": [-1.0, 0.0, 0.5], "omega": [0.0, 0.0, 0.0]}]}  # fmt: skip
     (tmp_path / "gt").mkdir()
     (tmp_path / "gt" / "meta.json").write_text(json.dumps(meta))
+
+    def motion(rest, owner):  # the true particles at rest and their objects
+        np.savez(tmp_path / "gt" / "motion.npz", particles_rest=np.array(rest, dtype=np.float64),
+                 particle_object=np.array(owner))  # fmt: skip
+
+    motion(x[0] + [0.0, 0.0, 0.005], [3, 3, 2, 2])
     truth = synthetic_truth(tmp_path, obs)
     assert [(b["name"], b["object"]) for b in truth["bodies"]] == [("body 0", "right"), ("body 1", "left")]
     assert true_value(truth, "body 0.E") == 5e4 and true_value(truth, "body 1.v0[0]") == 1.0
     assert true_value(truth, "body 1.omega0[2]") == 1.0 and true_value(truth, "linear_drag.c") == 0.6
     assert true_value(truth, "ground.mu") == 0.0  # not in the truth: the scene has no friction
-    meta["objects"][1]["center"] = [0.3, 0.0, 0.22]  # both objects start at body 0: no body is matched
-    (tmp_path / "gt" / "meta.json").write_text(json.dumps(meta))
+    motion(x[0, :2], [3, 2])  # both objects start at body 0, half of it each: no body is matched
     truth = synthetic_truth(tmp_path, obs)
     assert truth["bodies"] == [] and true_value(truth, "body 0.E") is None
     (tmp_path / "gt" / "meta.json").write_text("{not json")
