@@ -17,6 +17,7 @@ value, instead of as a shape error deep inside training.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Iterable, Sequence
@@ -111,6 +112,18 @@ class Dataset:
         """Sorted unique frame times (float64) of one split, or of all splits."""
         frames = self.frames() if split is None else self.splits[split]
         return np.unique(np.array([f.time for f in frames], dtype=np.float64))
+
+    def reframed(self, sim) -> Dataset:
+        """The same images seen by cameras re-posed by the similarity ``sim`` (and the initial points with them):
+        the dataset in another world frame (:mod:`causalgs.similarity`). Images are shared, not copied."""
+        if sim.is_identity:
+            return self
+        splits = {}
+        for name, frames in self.splits.items():
+            splits[name] = [dataclasses.replace(f, camera=Camera(f.camera.K, np.linalg.inv(
+                sim.camera_to_world(f.camera.c2w)), f.camera.width, f.camera.height)) for f in frames]  # fmt: skip
+        points = None if self.points is None else sim.points(self.points).astype(self.points.dtype)
+        return dataclasses.replace(self, splits=splits, points=points)
 
     def summary(self) -> str:
         """A few human-readable lines: what `causalgs info` prints."""

@@ -20,6 +20,7 @@ from causalgs.io import write_text
 from causalgs.model.canonical import CanonicalConfig
 from causalgs.model.fields import FieldsConfig
 from causalgs.model.particles import FILLS
+from causalgs.model.upright import FrameConfig
 from causalgs.settings import check_keys
 
 
@@ -133,6 +134,7 @@ class FitConfig:
     canonical: CanonicalConfig = field(default_factory=CanonicalConfig)
     fields: FieldsConfig = field(default_factory=FieldsConfig)
     kinematic: KinematicConfig = field(default_factory=KinematicConfig)
+    frame: FrameConfig = field(default_factory=FrameConfig)  # up and gravity's magnitude (causalgs.model.upright)
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
     checkpoint_seconds: float = 60.0  # a checkpoint at least this often within a stage, and at every stage end
 

@@ -1,5 +1,9 @@
 """Exports of a trained model: the canonical Gaussians as a standard 3DGS PLY and the per-Gaussian physics as NPZ.
 
+Both are in the data's own world frame (where its cameras and ground truth are), not in the physics frame the model
+was re-posed into (:mod:`causalgs.model.upright`); ``frame`` [4, 4] is the similarity from the one to the other, in
+which the learned effect parameters (a ground plane's offset, gravity) are given.
+
 ``physics.npz`` keys (N Gaussians, P simulated particles):
 
 - ``means`` [N, 3], ``dynamic`` [N] bool, ``code`` [N, C] physics code z, ``mixture`` [N, K] h,
@@ -11,6 +15,7 @@
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +26,20 @@ from causalgs.model.scene import CausalGS
 
 
 def physics_arrays(model: CausalGS) -> dict[str, np.ndarray]:
+    """The arrays of ``physics.npz`` (see the module docstring), positions and velocities in the data's frame."""
+    back = model.similarity().inverse()
+    out = _model_arrays(model)
+    for key in ("means", "particles_x0"):
+        if key in out:
+            out[key] = back.points(out[key]).astype(out[key].dtype)
+    for key in ("velocity", "particles_v0"):
+        if key in out:
+            out[key] = back.vectors(out[key]).astype(out[key].dtype)
+    out["frame"] = model.frame.numpy()
+    return out
+
+
+def _model_arrays(model: CausalGS) -> dict[str, np.ndarray]:
     f = model.fields
     with torch.no_grad():
         x = model.gaussians.means.detach().to(f.centres.dtype)
@@ -49,5 +68,10 @@ def physics_arrays(model: CausalGS) -> dict[str, np.ndarray]:
 
 def export_run(model: CausalGS, out) -> None:
     out = Path(out)
-    model.gaussians.to_ply(out / "gaussians.ply")
+    back = model.similarity().inverse()
+    gaussians = model.gaussians
+    if not back.is_identity:
+        gaussians = copy.deepcopy(gaussians)
+        gaussians.reframe(back)
+    gaussians.to_ply(out / "gaussians.ply")
     write_npz(out / "physics.npz", **physics_arrays(model))

@@ -69,7 +69,8 @@ class FieldsConfig:
 
 
 class Encoding(nn.Module):
-    """γ(p) = [u, sin(2^k π u), cos(2^k π u)]_{k<L} with u = (p − centre) / half_extent (the scene box to [-1, 1])."""
+    """γ(p) = [u, sin(2^k π u), cos(2^k π u)]_{k<L} with u = axes · (p − centre) / half_extent (the scene box to
+    [-1, 1]; ``axes`` is the identity until the world is re-posed, :meth:`reframe`)."""
 
     def __init__(self, freqs: int, dims: int, centre=None, half_extent=None):
         super().__init__()
@@ -78,6 +79,22 @@ class Encoding(nn.Module):
         half = torch.ones(dims) if half_extent is None else torch.as_tensor(half_extent).float()
         self.register_buffer("half_extent", half)
         self.register_buffer("scales", math.pi * 2.0 ** torch.arange(self.freqs, dtype=torch.float32))
+        self.register_buffer("axes", torch.eye(dims))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        state_dict.setdefault(prefix + "axes", torch.eye(self.dims))  # saved before re-posing existed
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def reframe(self, sim) -> None:
+        """The same γ of the same material point after the world is re-posed by ``sim`` (x' = s R x + t): with
+        x − c = Rᵀ (x' − c') / s and c' = s R c + t, u = axes D Rᵀ D⁻¹ / s · D (x' − c'), D = diag(1 / half)."""
+        D = torch.diag(1.0 / self.half_extent.double())
+        R = torch.tensor(sim.R, dtype=torch.float64)
+        axes = self.axes.double() @ D @ R.T @ torch.linalg.inv(D) / sim.scale
+        centre = torch.as_tensor(sim.points(self.centre.double().numpy()))
+        with torch.no_grad():
+            self.axes.copy_(axes.to(self.axes.dtype))
+            self.centre.copy_(centre.to(self.centre.dtype))
 
     @property
     def out_dim(self) -> int:
@@ -85,6 +102,7 @@ class Encoding(nn.Module):
 
     def forward(self, p: torch.Tensor) -> torch.Tensor:
         u = (p - self.centre.to(p.dtype)) / self.half_extent.to(p.dtype)
+        u = u @ self.axes.to(p.dtype).T
         a = u[..., None] * self.scales.to(p.dtype)  # [..., D, L]
         return torch.cat([u, a.sin().flatten(-2), a.cos().flatten(-2)], dim=-1)
 
@@ -141,6 +159,22 @@ class InversePhysics(nn.Module):
         if prefix + "f_mat.0.weight" in state_dict and prefix + "pattern_materials" not in state_dict:
             state_dict[prefix + "pattern_materials"] = torch.zeros_like(self.pattern_materials)  # an older model
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def reframe(self, sim) -> None:
+        """The same fields after the world is re-posed by ``sim`` (x' = s R x + t): the codes, mixtures and materials
+        of a material point do not change, and every pattern's twist (u, ω) about its centre c becomes
+        (s R u, R ω) about s R c + t, so the velocity field moves with the world (v' = s R v)."""
+        self.enc.reframe(sim)
+        K = self.config.patterns
+        B = torch.zeros(6, 6, dtype=torch.float64)
+        R = torch.tensor(sim.R, dtype=torch.float64)
+        B[:3, :3], B[3:, 3:] = sim.scale * R, R
+        block = torch.block_diag(*([B] * K))  # rows of the last layer: pattern k's (u, ω) at 6k..6k+5
+        last = self.f_weight[-1]
+        with torch.no_grad():
+            last.weight.copy_((block @ last.weight.double()).to(last.weight.dtype))
+            last.bias.copy_((block @ last.bias.double()).to(last.bias.dtype))
+            self.centres.copy_(torch.as_tensor(sim.points(self.centres.double().numpy())).to(self.centres.dtype))
 
     # -- per particle ----------------------------------------------------------------------------------------------
     def code(self, p: torch.Tensor) -> torch.Tensor:

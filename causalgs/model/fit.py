@@ -44,7 +44,11 @@ from causalgs.model.config import FitConfig
 from causalgs.model.gaussians import Gaussians
 from causalgs.model.scene import FORECAST_SOURCES, CausalGS, floor_patches, scene_bounds, stray_gaussians
 from causalgs.model.timeline import Timeline
+from causalgs.model.upright import Upright, infer_upright
 from causalgs.sim.effects import REGISTRY, Effects
+from causalgs.similarity import Similarity
+
+UPRIGHT_GROUP = 20  # a motion pattern tracked by fewer solid Gaussians gives no centroid for free flight
 
 STAGES = ("canonical", "kinematic", "physics", "assimilate", "done")
 LENGTHS = ("d",)  # effect parameters measured in metres (their steps are scaled by LENGTH_STEP)
@@ -142,6 +146,9 @@ class Trainer:
 
     def __init__(self, data: Dataset, run: Run, config: FitConfig, progress: Callable | None = None):
         self.data, self.run, self.config = data, run, config
+        self.source = data  # the dataset in its own frame; ``data`` is re-posed into the model's (_adopt_frame)
+        self.upright: Upright | None = None  # the inferred physics frame (_upright)
+        self.upright_json: dict | None = None  # ... as a resumed checkpoint recorded it
         self.timeline = Timeline.of(data)
         self.train = self.timeline.by_frame(data.train)
         self.bg = tuple(float(b) for b in data.background)
@@ -187,6 +194,7 @@ class Trainer:
             "stage_seconds": self.stage_seconds,
             "forecast_choice": self.forecast_choice,
             "calibration": self.calibration,
+            "upright": None if self.upright is None else self.upright.to_json(),
         }
 
     def _maybe_save(self, stage: str, it: int, optimizer, force: bool = False) -> None:
@@ -201,6 +209,10 @@ class Trainer:
             p.requires_grad_(False)
         return CausalGS(self.config, self.gaussians, lo, hi, self.timeline.fps, self.timeline.train_frames)
 
+    def frame_json(self) -> dict | None:
+        """The inferred physics frame as run.json records it (None when not inferred)."""
+        return self.upright.to_json() if self.upright is not None else self.upright_json
+
     # -- entry ------------------------------------------------------------------------------------------------------
     def fit(self, resume: dict | None = None) -> CausalGS:
         start_stage, start_it, opt_state = "canonical", 0, None
@@ -211,6 +223,7 @@ class Trainer:
             self.stage_seconds = dict(resume.get("stage_seconds", {}))
             self.forecast_choice = resume.get("forecast_choice")
             self.calibration = resume.get("calibration")
+            self.upright_json = resume.get("upright")
             self.run.truncate_log(start_stage, start_it)
         order = STAGES.index(start_stage)
         if order == 0:
@@ -222,6 +235,7 @@ class Trainer:
             self.model = self._new_model()
             _restore(self.model, resume["model"], self.run.checkpoint_path)
             self.gaussians = self.model.gaussians
+            self._adopt_frame()
         if self.model is None:
             self.model = self._new_model()
         if order <= 1:
@@ -291,14 +305,20 @@ class Trainer:
         self.run.save(self._payload("physics", 0), self.run.out / "kinematic.pt")
 
     def _split_static(self) -> None:
+        """Static and dynamic Gaussians; in between, the physics frame is inferred and the model re-posed into it
+        (:meth:`_upright`), since the floor's patches are found along its up."""
         m = self.model
         with torch.no_grad():
             m.dynamic.fill_(True)
             traj, _ = m.kinematic(self.timeline.train_frames - 1, rotations=False)
             disp = (traj - traj[:1]).norm(dim=-1).max(0).values
             size = float((m.hi - m.lo).max())
+            dynamic = disp > self.config.kinematic.static_threshold * size
+        sim = self._upright(traj, dynamic, size)
+        with torch.no_grad():
+            traj = torch.as_tensor(sim.points(traj.double().numpy()), dtype=traj.dtype)
+            size = float((m.hi - m.lo).max())
             reach = self.config.kinematic.static_threshold * size
-            dynamic = disp > reach
             floor = torch.zeros_like(dynamic)
             if "ground" in Effects.from_spec(self.config.physics.effects).names():
                 floor = floor_patches(traj[0], dynamic, size, reach)  # the floor under a body that stays on it
@@ -307,6 +327,35 @@ class Trainer:
         self.run.log({"stage": "kinematic", "it": self.config.kinematic.iterations, "dynamic": int(m.dynamic.sum()),
                       "static": int((~m.dynamic).sum()), "floor": int(floor.sum()),
                       "stray": int(stray.sum())})  # fmt: skip
+
+    def _upright(self, traj: torch.Tensor, dynamic: torch.Tensor, size: float) -> Similarity:
+        """Infer the physics frame (:func:`~causalgs.model.upright.infer_upright`) from the static Gaussians, the
+        tracked centroids of the dynamic ones' motion patterns and the cameras, and re-pose the model and the
+        cameras into it; the identity when ``frame.infer`` is off."""
+        fc = self.config.frame
+        if not fc.infer:
+            return Similarity.identity()
+        m, g = self.model, self.model.gaussians
+        with torch.no_grad():
+            alpha = torch.sigmoid(g.opacities.detach())
+            static = g.means.detach()[~dynamic & (alpha >= 0.5)].double().numpy()
+            solid = dynamic & (alpha >= self.config.physics.min_opacity)
+            label = m.mixtures(g.means.detach()[solid]).argmax(1)
+            moving = traj[:, solid].double()
+            groups = [k for k in torch.unique(label).tolist() if int((label == k).sum()) >= UPRIGHT_GROUP]
+            tracks = np.stack([moving[:, label == k].mean(1).numpy() for k in groups], 1) if groups else np.zeros(0)
+        cams = np.stack([f.camera.center for f in self.data.train])
+        self.upright = infer_upright(static, tracks, self.timeline.fps, cams, size, fc, self.config.seed)
+        sim = self.upright.similarity()
+        m.reframe(sim)
+        self._adopt_frame()
+        self.run.log({"stage": "kinematic", "it": self.config.kinematic.iterations, "frame": self.upright.to_json()})
+        return sim
+
+    def _adopt_frame(self) -> None:
+        """The cameras re-posed into the model's frame (the dataset as loaded is in the data's own)."""
+        self.data = self.source.reframed(self.model.similarity())
+        self.train = self.timeline.by_frame(self.data.train)
 
     def _physics(self, start: int, opt_state) -> None:
         t0 = time.monotonic() - self.stage_seconds.get("physics", 0.0)
@@ -579,7 +628,8 @@ def fit(data_dir, out, config: FitConfig | None = None, *, resume: bool = False,
                                "stage_seconds": trainer.stage_seconds,
                                "total_seconds": sum(trainer.stage_seconds.values()),
                                "forecast_start": trainer.forecast_choice,
-                               "stiffness_calibration": trainer.calibration})  # fmt: skip
+                               "stiffness_calibration": trainer.calibration,
+                               "frame": trainer.frame_json()})  # fmt: skip
     return model
 
 
@@ -599,7 +649,9 @@ def _load_model(trainer: Trainer, state: dict, path: Path) -> CausalGS:
     trainer.gaussians = Gaussians.from_points(np.zeros((1, 3)), sh_degree=trainer.config.canonical.sh_degree)
     trainer.model = trainer._new_model()
     _restore(trainer.model, state["model"], path)
+    trainer._adopt_frame()
     trainer.stage_seconds = dict(state.get("stage_seconds", {}))
+    trainer.upright_json = state.get("upright")
     return trainer.model
 
 

@@ -149,6 +149,21 @@ class Gaussians(nn.Module):
         return self.params()
 
     # -- rendering ------------------------------------------------------------------------------------------------
+    def reframe(self, sim) -> None:
+        """Re-pose the Gaussians in place by the similarity ``sim`` (:class:`causalgs.similarity.Similarity`): means
+        moved, orientations turned, log-scales shifted by log s, view-dependent colour turned with the world; a camera
+        re-posed by the same ``sim`` renders the same image."""
+        from causalgs.model.kinematic import quat_mul
+        from causalgs.render.sh import rotate_sh
+
+        R = torch.tensor(sim.R, dtype=self.means.dtype)
+        q = torch.tensor(sim.quaternion(), dtype=self.quats.dtype)
+        with torch.no_grad():
+            self.means.copy_(sim.scale * self.means @ R.T + torch.tensor(sim.t, dtype=self.means.dtype))
+            self.quats.copy_(quat_mul(q.expand_as(self.quats), self.quats))
+            self.scales.add_(math.log(sim.scale))
+            self.sh.copy_(rotate_sh(self.sh, sim.R, self.sh_degree))
+
     def render(self, camera, background=(0.0, 0.0, 0.0), **override):
         """Render from ``camera`` (a :class:`causalgs.cameras.Camera`); returns ``(image [H, W, 3], alpha [H, W],
         meta)`` as :func:`causalgs.render.rasterize` does.

@@ -29,6 +29,7 @@ from causalgs.render.reference import quat_scale_to_cov
 from causalgs.sim.autograd import deformed_covariance, simulate
 from causalgs.sim.effects import WALL_BAND, Effects
 from causalgs.sim.mpm import SimConfig, Simulator, segment_specs
+from causalgs.similarity import Similarity
 from causalgs.store import ParticleStore
 
 
@@ -94,6 +95,9 @@ class CausalGS(torch.nn.Module):
         self.register_buffer("assimilated", torch.zeros(len(FORECAST_SOURCES), config.fields.patterns, 6))
         # log of the factor on every particle's Young's modulus chosen by the stiffness calibration (Trainer._calibrate)
         self.register_buffer("log_stiffness", torch.zeros((), dtype=torch.float64))
+        # The similarity from the data's world frame to the model's (x_model = s R x_data + t, 4×4): the physics
+        # frame that the fit inferred (z up, gravity 9.8 in its units; causalgs.model.upright). Identity until then.
+        self.register_buffer("frame", torch.eye(4, dtype=torch.float64))
         self.particles: Particles | None = None
         self._sim: Simulator | None = None
 
@@ -125,6 +129,7 @@ class CausalGS(torch.nn.Module):
             state_dict[prefix + "assimilated"] = torch.zeros_like(self.assimilated)
         if prefix + "log_stiffness" not in state_dict:  # saved before the stiffness calibration existed
             state_dict[prefix + "log_stiffness"] = torch.zeros((), dtype=torch.float64)
+        state_dict.setdefault(prefix + "frame", torch.eye(4, dtype=torch.float64))  # saved before re-posing existed
         if prefix + "has_tracked" not in state_dict:  # a model saved before the tracked copy existed
             for k in [k for k in state_dict if k.startswith(prefix + "fields.")]:
                 state_dict[prefix + "tracked." + k[len(prefix + "fields.") :]] = state_dict[k]
@@ -137,6 +142,26 @@ class CausalGS(torch.nn.Module):
         with torch.no_grad():
             self.tracked.load_state_dict(self.fields.state_dict())
             self.has_tracked.fill_(True)
+
+    def similarity(self) -> Similarity:
+        """:attr:`frame` as a :class:`~causalgs.similarity.Similarity` (data's world → the model's)."""
+        m = self.frame.double().numpy()
+        s = float(np.cbrt(np.linalg.det(m[:3, :3])))
+        return Similarity.make(m[:3, :3] / s, s, m[:3, 3], what="the model's frame")
+
+    def reframe(self, sim: Similarity) -> None:
+        """Re-pose the whole model by ``sim`` (before the physical stage): Gaussians, both copies of the fields, the
+        scene bounds; :attr:`frame` composes it. Renders from cameras re-posed by the same ``sim`` are unchanged."""
+        if self.particles is not None:
+            raise CausalGSError("a model is re-posed before its physical stage, not after")
+        self.gaussians.reframe(sim)
+        self.fields.reframe(sim)
+        self.tracked.reframe(sim)
+        lo, hi = scene_bounds(self.gaussians.means.detach().double().numpy())
+        with torch.no_grad():
+            self.lo.copy_(torch.as_tensor(lo))
+            self.hi.copy_(torch.as_tensor(hi))
+            self.frame.copy_(torch.as_tensor(self.similarity().then(sim).matrix()))
 
     @property
     def kinematic_fields(self) -> InversePhysics:

@@ -5,6 +5,7 @@ the unit direction from the camera centre to the Gaussian.
 """
 
 # No `from __future__ import annotations`: Taichi 1.7 reads ti.func annotations as live objects.
+import numpy as np
 import torch
 
 from causalgs._ti import ti
@@ -85,3 +86,21 @@ def eval_sh(S, d, degree: ti.template()):
 @ti.func
 def _row(S, k: ti.template()):
     return ti.Vector([S[k, 0], S[k, 1], S[k, 2]])
+
+
+def rotate_sh(sh: torch.Tensor, R, degree: int) -> torch.Tensor:
+    """SH coefficients [N, S, 3] of the same colour function in a world turned by the rotation ``R`` [3, 3]: the
+    colour seen along R d after the turn is the colour seen along d before. Each band l mixes only within itself, by
+    the (2l + 1)² matrix M with basis(Rᵀ d) = basis(d) M, solved exactly by least squares on directions that span
+    the band."""
+    R = torch.tensor(np.asarray(R), dtype=torch.float64)
+    g = torch.Generator().manual_seed(0)
+    dirs = torch.nn.functional.normalize(torch.randn(64, 3, generator=g, dtype=torch.float64), dim=-1)
+    B = sh_basis_torch(dirs, degree)
+    B_turned = sh_basis_torch(dirs @ R, degree)  # rows: basis at Rᵀ d
+    out = sh.clone()
+    for band in range(1, degree + 1):
+        lo, hi = band * band, (band + 1) * (band + 1)
+        M = torch.linalg.lstsq(B[:, lo:hi], B_turned[:, lo:hi]).solution  # [m, m]
+        out[:, lo:hi] = torch.einsum("ij,njc->nic", M.to(sh.dtype), sh[:, lo:hi])
+    return out
