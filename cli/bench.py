@@ -178,16 +178,17 @@ def jobs_bench(jobs, pieces, work, grid, units, cycles, frames):
 @click.option("--data", "data_root", type=click.Path(file_okay=False), required=True,
               help="Folder with one dataset per scene (e.g. the output of `causalgs synth all`).")  # fmt: skip
 @click.option("--out", "out_root", type=click.Path(file_okay=False), required=True, help="Folder for the runs.")
-@click.option("--scenes", default="fallingball,jelly,collide,room,spin", show_default=True,
-              help="Scenes (sub-folders of --data), comma-separated.")  # fmt: skip
+@click.option("--scenes", default="fallingball,jelly,collide,room,spin,bounce,tumble,knock,soft", show_default=True,
+              help="Scenes (sub-folders of --data), comma-separated: MPM-made and MuJoCo-made.")  # fmt: skip
 @click.option("--preset", type=click.Choice(["quick", "full"]), default="quick", show_default=True)
 @click.option("--lpips", "lpips_nets", default="alex,vgg", show_default=True, help="LPIPS networks: alex, vgg, none.")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON lines only.")
 @device_option
 def fit_(data_root, out_root, scenes, preset, lpips_nets, as_json, device):
     """Fit, then evaluate, every scene: one JSON line per scene (fit seconds per stage, interpolation and
-    extrapolation metrics of the simulator and its baselines, recovered stiffness order and initial-velocity error),
-    then a table. Runs already fitted in --out are evaluated again, not refitted."""
+    extrapolation metrics of the simulator and its baselines, the recovered initial velocity and spin and the
+    inferred up and gravity against the truth), then two tables. Runs already fitted in --out are evaluated again,
+    not refitted."""
     from pathlib import Path
 
     from causalgs import _ti
@@ -226,4 +227,25 @@ def fit_table(rows: list[dict]) -> str:
                 lines.append(f"| {r['scene']} | {split} | {dyn} | {f(m['psnr'], '.2f')} | {f(m['ssim'], '.4f')} | "
                              f"{f(m.get('lpips_alex'), '.4f')} | {f(m.get('lpips_vgg'), '.4f')} | "
                              f"{f(r['fit_seconds'], '.0f')} |")  # fmt: skip
+    return "\n".join(lines) + "\n\n" + recovery_table(rows)
+
+
+def recovery_table(rows: list[dict]) -> str:
+    """A markdown table: per scene and body, the learned initial velocity and spin against the truth, and the
+    inferred frame (up's error, gravity's magnitude over the truth's)."""
+    lines = ["| scene | body | velocity true (m/s) | velocity error | spin true (rad/s) | spin learned | up error | "
+             "gravity / truth |", "|---" * 8 + "|"]  # fmt: skip
+
+    def vec(v):
+        return "n/a" if v is None else "(" + ", ".join(f"{a:.2f}" for a in v) + ")"
+
+    for r in rows:
+        fr = r.get("frame") or {}
+        up = "n/a" if fr.get("up_error_deg") is None else f"{fr['up_error_deg']:.2f}°"
+        g = "n/a" if fr.get("gravity_ratio") is None else f"{fr['gravity_ratio']:.3f}"
+        for o in (r.get("recovery") or {}).get("objects", []) or [{}]:
+            rel = o.get("velocity_error_relative")
+            lines.append(f"| {r['scene']} | {o.get('name', 'n/a')} | {vec(o.get('velocity_true_mean'))} | "
+                         f"{'n/a' if rel is None else f'{100 * rel:.0f}%'} | {vec(o.get('omega_true'))} | "
+                         f"{vec(o.get('omega_model'))} | {up} | {g} |")  # fmt: skip
     return "\n".join(lines)

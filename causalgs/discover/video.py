@@ -36,6 +36,7 @@ from causalgs.discover.model import CAPACITY
 from causalgs.discover.observation import Observation, lens, noise_floor
 from causalgs.errors import CausalGSError
 from causalgs.model.refine import RefineConfig, cached_tracks, tracks_kept
+from causalgs.similarity import Similarity
 
 REFINE = RefineConfig()  # the measurement: the kinematic fit refined frame by frame (causalgs.model.refine)
 # The share of the particles a body needs: a motion pattern holding less joins the one it mixes with most, and a
@@ -64,13 +65,14 @@ def _load(run_dir):
     return _LOADED[key]
 
 
-def synthetic_truth(root: Path, obs: Observation, reach: float = 0.03) -> dict | None:
+def synthetic_truth(root: Path, obs: Observation, reach: float = 0.03, frame=None) -> dict | None:
     """What a synthetic scene's dataset records of its truth (``causalgs synth``: ``gt/meta.json``), in the terms
     of a report (:func:`causalgs.discover.report.true_value`): the true effects, and each tracked body's material
     and throw where most of its first-frame points lie on one of the scene's objects
     (:func:`causalgs.model.recovery.true_objects`, as a fit's recovery report assigns its Gaussians) and no other
     body claims that object. None for a dataset without a truth (a user's own video) or with one that cannot be
-    read: the report then goes without it."""
+    read: the report then goes without it. ``frame`` (a :class:`~causalgs.similarity.Similarity`, default none):
+    the run's map from the data's frame to its own, in which ``obs`` and the truth returned are."""
     from causalgs.io import read_json
     from causalgs.model.recovery import true_objects
 
@@ -83,19 +85,35 @@ def synthetic_truth(root: Path, obs: Observation, reach: float = 0.03) -> dict |
         objects = {o["id"]: o for o in meta.get("objects", []) if "E" in o}
     except (CausalGSError, KeyError, TypeError):
         return None
-    label = true_objects(obs.x[0], root, reach)
+    frame = frame or Similarity.identity()
+    label = true_objects(frame.inverse().points(obs.x[0]), root, reach)
     bodies = []
     for b, name in enumerate(obs.names if label is not None else []):
         ids, counts = np.unique(label[obs.body == b], return_counts=True)
         top = int(np.argmax(counts))
         if int(ids[top]) in objects and 2 * counts[top] > counts.sum():
-            o = objects[int(ids[top])]
+            o = dict(objects[int(ids[top])])
+            for key, kind in (("velocity", "vectors"), ("omega", "directions")):
+                if key in o:
+                    o[key] = getattr(frame, kind)(o[key]).tolist()
             bodies.append({"name": name, "object": o.get("name"),
                            **{k: o[k] for k in ("E", "nu", "density", "velocity", "omega") if k in o}})  # fmt: skip
     if len({b["object"] for b in bodies}) < len(bodies):  # two bodies on one object: neither is that object
         bodies = []
+    effects = {name: _reposed_effect(dict(params), frame) for name, params in effects.items()}
     return {"scene": meta.get("scene"), "effects_spec": meta["motion"].get("effects_spec"), "effects": effects,
             "bodies": bodies, "source": str(path)}
+
+
+def _reposed_effect(params: dict, frame: Similarity) -> dict:
+    """An effect's true parameters in a run's frame: accelerations (g, b) turned and scaled, planes (n, d) moved."""
+    for key in ("g", "b"):
+        if key in params:
+            params[key] = frame.vectors(params[key]).tolist()
+    if "n" in params and "d" in params:
+        n, d = frame.plane(params["n"], float(np.ravel(params["d"])[0]))
+        params["n"], params["d"] = n.tolist(), [d]
+    return params
 
 
 def refined_together(run_dir, model, data, tl, specs: list[tuple], workers: int, steps: list) -> list:
@@ -258,7 +276,7 @@ def observation_from_run(run_dir, *, held_out: float = 0.25, max_points: int = C
                       shape_resolution=0.5 * float(model.cell),
                       # tracks err smoothly, more where the halves disagree more (without them: alike everywhere)
                       drift=drift, disagreement=None if xa is None else disagreement(x, xa, body))  # fmt: skip
-    obs.truth = synthetic_truth(Path(data.root), obs)
+    obs.truth = synthetic_truth(Path(data.root), obs, frame=model.similarity())
     pixel = pixel_footprint(data.train, x[0].mean(0))
     obs.noise = max(noise_floor(obs), RESOLVE * pixel, SPLIT * split_m if split_m is not None else 0.0)
     if stretch and xa is not None:  # rigid tracks: the stretching ones where the bodies deform (the rigid noise)

@@ -208,22 +208,25 @@ def _fit(case: VideoCase, seed: int, cfg: VideoTableConfig, data: Path, run: Pat
     return float(read_json(run / "run.json", "run info").get("total_seconds", 0.0))
 
 
-def matched_truth(x0: np.ndarray, data: Path) -> tuple[np.ndarray, np.ndarray] | None:
+def matched_truth(x0: np.ndarray, data: Path, frame=None) -> tuple[np.ndarray, np.ndarray] | None:
     """(keep [P] bool, the true positions [T, kept, 3]): the truth's material point nearest to each tracked
-    particle at the first frame, kept where it is within a centimetre (None: no such particle)."""
+    particle at the first frame, kept where it is within a centimetre (None: no such particle). ``frame``: the run's
+    map from the data's frame to its own (:meth:`CausalGS.similarity`), in which ``x0`` and the positions are."""
     from scipy.spatial import cKDTree
 
     gt = np.load(data / "gt" / "motion.npz")["particles"]
+    if frame is not None:
+        gt = frame.points(gt)
     d, near = cKDTree(gt[0]).query(np.asarray(x0, dtype=np.float64))
     keep = d < 0.01
     return (keep, gt[:, near[keep]].astype(np.float64)) if keep.any() else None
 
 
-def tracking_error(run_obs, data: Path) -> float | None:
+def tracking_error(run_obs, data: Path, frame=None) -> float | None:
     """RMS per coordinate (m) of the tracked displacement against the true one over the observed window, at the
     tracked particles within a centimetre of a true material point at the first frame (None: no such particle)."""
     x = np.asarray(run_obs.x, dtype=np.float64)
-    match = matched_truth(x[0], data)
+    match = matched_truth(x[0], data, frame)
     if match is None:
         return None
     keep, g = match
@@ -232,7 +235,7 @@ def tracking_error(run_obs, data: Path) -> float | None:
     return float(np.sqrt((e[1:] ** 2).mean()))
 
 
-def prediction_error(disc: Path, data: Path) -> dict | None:
+def prediction_error(disc: Path, data: Path, frame=None) -> dict | None:
     """The discovery's predictions before and after the repair against the truth
     (:func:`causalgs.discover.table.truth_error`) at the tracked particles matched to a true material point, from
     its ``trajectories.npz`` (None: none written, or no particle matched)."""
@@ -241,7 +244,7 @@ def prediction_error(disc: Path, data: Path) -> dict | None:
         return None
     with np.load(path) as z:
         t = {k: z[k] for k in ("x", "before", "after", "observed")}
-    match = matched_truth(t["x"][0], data)
+    match = matched_truth(t["x"][0], data, frame)
     if match is None:
         return None
     keep, g = match
@@ -265,9 +268,13 @@ def run_one(case_name: str, seed: int, cfg: VideoTableConfig, out: Path, log=Non
                                        lens=cfg.lens, stretch=cfg.stretch)  # fmt: skip
     except CausalGSError as e:  # one failing case is a row of the table, not the end of it
         return {**_failed(case, seed, str(e), time.monotonic() - t0), "fit_seconds": None}
-    report["truth_error"] = prediction_error(disc, data)
+    from causalgs.model.fit import run_frame
+
+    frame = run_frame(run)
+    report["truth_error"] = prediction_error(disc, data, frame)
     row = {**score(case, report), "seed": seed, "seconds": report["seconds"], "fit_seconds": fit_seconds,
-           "tracking_rms_m": tracking_error(obs, data), "tracking_kinematic_rms_m": tracking_error(plain, data),
+           "tracking_rms_m": tracking_error(obs, data, frame),
+           "tracking_kinematic_rms_m": tracking_error(plain, data, frame),
            "noise_m": report["noise"]}  # fmt: skip
     im = report.get("images") or {}
     row["psnr_before"], row["psnr_after"] = im.get("psnr_before"), im.get("psnr_after")

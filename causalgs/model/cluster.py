@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 from scipy.cluster.vq import kmeans2
 from scipy.optimize import linear_sum_assignment
-from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from causalgs.errors import CausalGSError
 from causalgs.io import read_json, write_json
+from causalgs.model.recovery import true_objects
 
 PALETTE = np.array([
     [0.75, 0.75, 0.75], [0.90, 0.30, 0.25], [0.25, 0.55, 0.90], [0.30, 0.75, 0.35], [0.95, 0.75, 0.20],
@@ -118,15 +118,10 @@ def cluster_run(run_dir, k: int | None = None, k_max: int = 6, seed: int = 0) ->
 
 
 def _ground_truth(means: np.ndarray, dyn: np.ndarray, data_dir: Path, reach: float = 0.03) -> np.ndarray | None:
-    motion = data_dir / "gt" / "motion.npz"
-    if not motion.is_file():
-        return None
-    with np.load(motion) as z:
-        if "particles_rest" not in z:
-            return None
-        rest, owner = z["particles_rest"], z["particle_object"]
-    dist, idx = cKDTree(rest).query(means)
-    return np.where(dyn & (dist < reach), owner[idx], np.where(dyn, -1, 0))
+    """Each Gaussian's true object (:func:`causalgs.model.recovery.true_objects`): 0 for static ones, -1 for dynamic
+    ones near no true particle."""
+    label = true_objects(means, data_dir, reach)
+    return None if label is None else np.where(dyn, label, 0)
 
 
 def _match(labels: np.ndarray, truth: np.ndarray) -> dict:

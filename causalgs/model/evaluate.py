@@ -30,7 +30,7 @@ from causalgs.errors import CausalGSError
 from causalgs.io import read_json, write_image, write_json
 from causalgs.metrics import image_metrics
 from causalgs.model.fit import load_model
-from causalgs.model.recovery import recovery_report
+from causalgs.model.recovery import frame_report, recovery_report
 from causalgs.model.scene import CausalGS, State
 from causalgs.model.timeline import Timeline
 from causalgs.render.views import to_uint8, write_video
@@ -116,6 +116,9 @@ def evaluate(run_dir, *, dynamics=EVAL_DYNAMICS, lpips_nets=("alex", "vgg"), pro
     recovered = recovery_report(run_dir / "physics.npz", info["data"]) if (run_dir / "physics.npz").is_file() else None
     if recovered is not None:
         result["recovery"] = recovered
+    frame = frame_report(info.get("frame"), info["data"])
+    if frame is not None:
+        result["frame"] = frame
     write_json(run_dir / "metrics.json", result)
     return result
 

@@ -655,6 +655,12 @@ def _load_model(trainer: Trainer, state: dict, path: Path) -> CausalGS:
     return trainer.model
 
 
+def run_frame(run_dir) -> Similarity:
+    """A finished run's map from its data's world frame to the model's (run.json ``frame``; identity without one)."""
+    frame = read_json(Path(run_dir) / "run.json", "run info").get("frame")
+    return Similarity.identity() if not frame else Similarity.from_json(frame["similarity"], f"{run_dir}/run.json")
+
+
 def load_model(run_dir, which: str = "checkpoint.pt") -> tuple[CausalGS, Dataset, Timeline]:
     """The trained model of a run folder (``which``: checkpoint.pt or kinematic.pt), its dataset and timeline."""
     run = Run(Path(run_dir))

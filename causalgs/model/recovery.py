@@ -34,7 +34,7 @@ def recovery_report(physics_npz, data_dir, reach: float = 0.03) -> dict | None:
     if label is None:
         return None
     meta = read_json(meta_path, "ground truth")
-    objects = {o["id"]: o for o in meta.get("objects", []) if "E" in o}
+    objects = {o["id"]: o for o in meta.get("objects", []) if o.get("kind") != "static" and "velocity" in o}
     label = np.where(dyn, label, -1)
     rows = []
     for oid, o in sorted(objects.items()):
@@ -50,7 +50,7 @@ def recovery_report(physics_npz, data_dir, reach: float = 0.03) -> dict | None:
         speed = float(np.linalg.norm(v_true, axis=1).mean())
         rows.append({
             "id": oid, "name": o.get("name"), "gaussians": int(sel.sum()),
-            "E_true": o["E"], "E_model": float(np.median(E[sel])),
+            "E_true": o.get("E"), "E_model": float(np.median(E[sel])),
             "nu_true": o.get("nu"), "nu_model": float(np.median(nu[sel])),
             "density_true": o.get("density"), "density_model": float(np.median(rho[sel])),
             "velocity_true_mean": v_true.mean(0).tolist(), "velocity_model_mean": vel[sel].mean(0).tolist(),
@@ -59,7 +59,7 @@ def recovery_report(physics_npz, data_dir, reach: float = 0.03) -> dict | None:
             "omega_true": np.asarray(o.get("omega", [0, 0, 0]), dtype=np.float64).tolist(),
             "omega_model": None if omega is None else omega.tolist(),
         })  # fmt: skip
-    found = [r for r in rows if r.get("gaussians")]
+    found = [r for r in rows if r.get("gaussians") and r.get("E_true") is not None]
     order_ok = None
     if len(found) >= 2:
         true_rank = np.argsort([r["E_true"] for r in found])
@@ -80,8 +80,47 @@ def true_objects(points, data_dir, reach: float = 0.03) -> np.ndarray | None:
         if "particles_rest" not in z or "particle_object" not in z:
             return None
         rest, owner = z["particles_rest"], z["particle_object"]
+    reach = reach * truth_scale(data_dir)
     dist, idx = cKDTree(rest).query(np.asarray(points, dtype=np.float64))
     return np.where(dist < reach, owner[idx], -1)
+
+
+def true_gravity(data_dir) -> np.ndarray | None:
+    """The scene's gravity vector in the dataset's frame (``gt/meta.json``: an MPM scene's ``gravity`` effect or an
+    engine scene's ``motion.gravity``, re-posed with the dataset); None when the truth does not say."""
+    meta_path = Path(data_dir) / "gt" / "meta.json"
+    if not meta_path.is_file():
+        return None
+    motion = read_json(meta_path, "ground truth").get("motion", {})
+    g = motion.get("gravity")
+    if g is None:
+        g = motion.get("effects", {}).get("gravity", {}).get("g")
+    return None if g is None else np.asarray(g, dtype=np.float64)
+
+
+def frame_report(frame: dict | None, data_dir) -> dict | None:
+    """The inferred physics frame (run.json ``frame``) against the truth: the angle between the inferred and the true
+    up (degrees) and the inferred gravity's magnitude over the true one; None without either."""
+    g = true_gravity(data_dir)
+    if not frame or g is None or not np.linalg.norm(g) > 0:
+        return None
+    up_true = -g / np.linalg.norm(g)
+    up = np.asarray(frame["up"], dtype=np.float64)
+    angle = float(np.degrees(np.arccos(np.clip(up @ up_true / np.linalg.norm(up), -1.0, 1.0))))
+    gravity = frame.get("gravity")
+    return {"up": up.tolist(), "up_true": up_true.tolist(), "up_error_deg": angle, "source": frame.get("source"),
+            "gravity": gravity, "gravity_true": float(np.linalg.norm(g)),
+            "gravity_ratio": None if gravity is None else float(gravity / np.linalg.norm(g))}  # fmt: skip
+
+
+def truth_scale(data_dir) -> float:
+    """The dataset's length unit per original metre: the scale of ``gt/meta.json`` ``frame`` for a dataset re-posed
+    by ``causalgs reframe``, else 1."""
+    meta = Path(data_dir) / "gt" / "meta.json"
+    if not meta.is_file():
+        return 1.0
+    frame = read_json(meta, "ground truth").get("frame")
+    return float(frame["scale"]) if isinstance(frame, dict) and "scale" in frame else 1.0
 
 
 def rigid_spin(r: np.ndarray, v: np.ndarray) -> np.ndarray | None:

@@ -170,3 +170,25 @@ def test_pattern_motion_blend_equals_per_particle_rk2_for_one_pattern_particles(
     x, _ = blend(hm, x0[:1], None, R[8], t[8], q[8])
     expect = 0.25 * (R[8][0] @ x0[0] + t[8][0]) + 0.75 * (R[8][1] @ x0[0] + t[8][1])
     assert torch.allclose(x[0], expect, atol=1e-12)
+
+
+def test_reframed_fields_describe_the_same_motion():
+    """Re-posed by x' = s R x + t, a material point keeps its code, mixture and material, and its velocity turns
+    with the world (v' = s R v), at every time."""
+    from causalgs.similarity import Similarity, random_rotation
+
+    f = _fields()
+    with torch.no_grad():
+        for p in f.parameters():
+            p.add_(0.2 * torch.randn_like(p))
+    sim = Similarity.make(random_rotation(0), 0.3, [1.0, -2.0, 0.5])
+    x = torch.rand(40, 3, dtype=torch.float64) * 2 - 1
+    h = f.mixture(f.code(x))
+    before = {"h": h, "E": f.materials(x, h)["E"], "v": [f.velocity(x, t, h) for t in (0.0, 0.4, 0.9)]}
+    f.reframe(sim)
+    y = torch.as_tensor(sim.points(x.numpy()))
+    h2 = f.mixture(f.code(y))
+    assert torch.allclose(h2, before["h"], atol=1e-12)
+    assert torch.allclose(f.materials(y, h2)["E"], before["E"], rtol=1e-12)
+    for t, v in zip((0.0, 0.4, 0.9), before["v"], strict=True):
+        assert torch.allclose(f.velocity(y, t, h2), torch.as_tensor(sim.vectors(v.detach().numpy())), atol=1e-12)

@@ -106,7 +106,7 @@ def test_flight_alone_plane_alone_given_and_neither():
 
 def test_sliding_on_the_floor_is_not_taken_for_gravity():
     """More frames of sliding than of flight: with the floor found, only accelerations along its normal count."""
-    tracks = np.stack([bouncing(frames=140), sliding(frames=140), sliding(frames=140) + [0, 0.3, 0]], 1)
+    tracks = np.stack([bouncing(frames=140), sliding(frames=140), sliding(frames=140) + np.array([0, 0.3, 0])], 1)
     u = infer_upright(floor_points(), tracks, FPS, CAMERAS, 3.0, FrameConfig())
     assert u.source == "plane+flight" and abs(u.gravity - 9.8) < 0.1
     assert free_flight(tracks[:, 1:], FPS, 3.0) is not None  # without the floor, sliding alone would pass
