@@ -34,6 +34,8 @@ AGREE_DEG = 15.0  # a plane whose normal is this close to −g is the floor grav
 WINDOW_SECONDS = 0.1  # sliding windows of free-flight detection (at least 5 frames)
 SIGNIFICANT = 4.0  # a window's acceleration counts when it is this many standard errors from zero
 CARRY = 0.05  # ... and would move a body by this fraction of the scene size over the observed time
+WOBBLE = 0.6  # a window this close to gravity (a fraction of it) is a wobble of the track, not a contact
+OUTLIER = 4.0  # a flight's end frame this many times the parabolas' RMS residual off them is dropped
 SHARED = 0.15  # windows whose accelerations differ by less than this fraction of the candidate's agree with it
 PLANE_TOL = 0.005  # RANSAC inlier distance, as a fraction of the scene size
 PLANE_SHARE = 0.25  # a dominant plane holds at least this share of the static Gaussians
@@ -74,6 +76,7 @@ class Flight:
     flights: int  # how many flights (runs of agreeing windows) were joined
     frames: int  # frames in them
     rms: float  # the parabolas' RMS residual (scene units)
+    segments: list[tuple[int, int, int]] = field(default_factory=list)  # (track, first frame, last frame) of each
 
 
 @dataclass
@@ -137,16 +140,15 @@ def free_flight(tracks: np.ndarray, fps: float, size: float, axis: np.ndarray | 
         return None
     duration = (F - 1) / fps
     least = 2 * CARRY * size / duration**2
-    samples, where = [], []
+    per_track, samples = [], []
     for g in range(tracks.shape[1]):
         acc, se = window_accelerations(tracks[:, g], fps, width)
         norm = np.linalg.norm(acc, axis=1)
         keep = (norm > SIGNIFICANT * se) & (norm > least)
         if axis is not None:
             keep &= np.abs(acc @ axis) >= math.cos(math.radians(AGREE_DEG)) * norm
-        for w in np.nonzero(keep)[0]:
-            samples.append(acc[w])
-            where.append((g, w))
+        per_track.append((acc, keep))
+        samples.extend(acc[keep])
     if len(samples) < 3:
         return None
     S = np.asarray(samples)
@@ -156,25 +158,63 @@ def free_flight(tracks: np.ndarray, fps: float, size: float, axis: np.ndarray | 
     if agree[best].sum() < 3:
         return None
     g0 = np.median(S[agree[best]], axis=0)
-    ok = np.linalg.norm(S - g0, axis=1) < 2 * SHARED * np.linalg.norm(g0)
-    flights = _runs([wh for wh, k in zip(where, ok, strict=True) if k], width)
-    return _joint_parabola(tracks, flights, fps)
+    flights = []
+    for g, (acc, keep) in enumerate(per_track):
+        dev = np.linalg.norm(acc - g0, axis=1) / np.linalg.norm(g0)
+        flights += _runs(g, keep & (dev < 2 * SHARED), dev < WOBBLE, width)
+    return _joint_parabola(tracks, flights, fps, width)
 
 
-def _runs(windows: list[tuple[int, int]], width: int) -> list[tuple[int, int, int]]:
-    """(group, first frame, last frame) of each run of consecutive agreeing windows."""
+def _runs(track: int, agrees: np.ndarray, near: np.ndarray, width: int) -> list[tuple[int, int, int]]:
+    """(track, first frame, last frame) of each flight: a run of consecutive windows near gravity (a smooth track's
+    wobble), from its first to its last window that agrees with it. A contact's windows are far from gravity for as
+    long as a window spans the contact, so they end a run."""
     out = []
-    for g, w in sorted(windows):
-        if out and out[-1][0] == g and w <= out[-1][2] - width + 2:
-            out[-1] = (g, out[-1][1], w + width - 1)
-        else:
-            out.append((g, w, w + width - 1))
+    w = 0
+    while w < len(near):
+        if not near[w]:
+            w += 1
+            continue
+        end = w
+        while end + 1 < len(near) and near[end + 1]:
+            end += 1
+        ok = np.nonzero(agrees[w : end + 1])[0]
+        if len(ok):
+            out.append((track, w + int(ok[0]), w + int(ok[-1]) + width - 1))
+        w = end + 1
     return out
 
 
-def _joint_parabola(tracks: np.ndarray, flights: list[tuple[int, int, int]], fps: float) -> Flight | None:
-    """One parabola per flight, all with one acceleration: linear least squares for g [3] and each flight's start
-    position and velocity."""
+def _joint_parabola(tracks: np.ndarray, flights: list[tuple[int, int, int]], fps: float,
+                    width: int) -> Flight | None:  # fmt: skip
+    """One parabola per flight, all with one acceleration (:func:`_parabolas`); a flight's end frame whose residual
+    is more than :data:`OUTLIER` times the fit's RMS (a contact the windows half-spanned) is dropped and the fit
+    repeated, a flight kept at least ``width`` frames long."""
+    fit = _parabolas(tracks, flights, fps)
+    for _ in range(width):
+        if fit is None:
+            return None
+        resid, flight = fit
+        trimmed = []
+        for (g, a, b), r in zip(flights, resid, strict=True):
+            limit = OUTLIER * flight.rms
+            while b - a + 1 > width and max(r[0], r[-1]) > limit:
+                if r[0] >= r[-1]:
+                    a, r = a + 1, r[1:]
+                else:
+                    b, r = b - 1, r[:-1]
+            trimmed.append((g, a, b))
+        if trimmed == flights:
+            return flight
+        flights = trimmed
+        fit = _parabolas(tracks, flights, fps)
+    return None if fit is None else fit[1]
+
+
+def _parabolas(tracks: np.ndarray, flights: list[tuple[int, int, int]],
+               fps: float) -> tuple[list[np.ndarray], Flight] | None:  # fmt: skip
+    """Linear least squares for one acceleration g [3] and each flight's start position and velocity; each flight's
+    per-frame residual distances and the :class:`Flight`."""
     if not flights:
         return None
     rows = sum(b - a + 1 for _, a, b in flights)
@@ -190,8 +230,11 @@ def _joint_parabola(tracks: np.ndarray, flights: list[tuple[int, int, int]], fps
         Y[r : r + n] = tracks[a : b + 1, g]
         r += n
     coef, *_ = np.linalg.lstsq(A, Y, rcond=None)
-    rms = float(np.sqrt(((A @ coef - Y) ** 2).sum(1).mean()))
-    return Flight(coef[0], len(flights), int(rows), rms)
+    dist = np.linalg.norm(A @ coef - Y, axis=1)
+    rms = float(np.sqrt((dist**2).mean()))
+    bounds = np.cumsum([0] + [b - a + 1 for _, a, b in flights])
+    resid = [dist[bounds[i] : bounds[i + 1]] for i in range(len(flights))]
+    return resid, Flight(coef[0], len(flights), int(rows), rms, [(int(g), int(a), int(b)) for g, a, b in flights])
 
 
 # -- the dominant plane ------------------------------------------------------------------------------------------------
