@@ -83,3 +83,19 @@ def test_bench_jobs_runs_pieces_both_ways():
     assert rec["jobs_threads"] == 1 or len(rec["cpus"] or []) < 2
     if rec["cpus"] and len(rec["cpus"]) >= 2:
         assert len(rec["jobs_cpus"]) == 2 and all(len(c) == 1 for c in rec["jobs_cpus"])
+
+
+def test_bench_fit_tables_show_metrics_recovery_and_frame():
+    from cli.bench import fit_table
+
+    row = {"scene": "bounce", "fit_seconds": 600.0,
+           "extrapolation": {"mpm": {"psnr": 30.5, "ssim": 0.97, "lpips_alex": 0.05, "lpips_vgg": 0.1}},
+           "recovery": {"objects": [{"name": "ball", "velocity_true_mean": [1.0, 0.0, 2.0],
+                                     "velocity_error_relative": 0.12, "omega_true": [0.0, 4.0, 0.0],
+                                     "omega_model": [0.1, 3.5, 0.0]}]},
+           "frame": {"up_error_deg": 0.42, "gravity_ratio": 1.031}}  # fmt: skip
+    text = fit_table([row, {"scene": "spin", "fit_seconds": None}])
+    assert "| bounce | extrapolation | mpm | 30.50 | 0.9700 | 0.0500 | 0.1000 | 600 |" in text
+    ball = "| bounce | ball | (1.00, 0.00, 2.00) | 12% | (0.00, 4.00, 0.00) | (0.10, 3.50, 0.00) | 0.42° | 1.031 |"
+    assert ball in text
+    assert "| spin | n/a | n/a | n/a | n/a | n/a | n/a | n/a |" in text
