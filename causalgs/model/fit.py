@@ -44,7 +44,7 @@ from causalgs.model.config import FitConfig
 from causalgs.model.gaussians import Gaussians
 from causalgs.model.scene import FORECAST_SOURCES, CausalGS, floor_patches, scene_bounds, stray_gaussians
 from causalgs.model.timeline import Timeline
-from causalgs.model.upright import Upright, infer_upright
+from causalgs.model.upright import GRAVITY, FrameConfig, Upright, infer_upright, normalising
 from causalgs.sim.effects import REGISTRY, Effects
 from causalgs.similarity import Similarity
 
@@ -194,7 +194,7 @@ class Trainer:
             "stage_seconds": self.stage_seconds,
             "forecast_choice": self.forecast_choice,
             "calibration": self.calibration,
-            "upright": None if self.upright is None else self.upright.to_json(),
+            "upright": self.frame_json(),
         }
 
     def _maybe_save(self, stage: str, it: int, optimizer, force: bool = False) -> None:
@@ -210,8 +210,11 @@ class Trainer:
         return CausalGS(self.config, self.gaussians, lo, hi, self.timeline.fps, self.timeline.train_frames)
 
     def frame_json(self) -> dict | None:
-        """The inferred physics frame as run.json records it (None when not inferred)."""
-        return self.upright.to_json() if self.upright is not None else self.upright_json
+        """The inferred physics frame as run.json records it (None when not inferred): up and gravity's magnitude in
+        the data's frame and units, with their evidence, and ``similarity``, the model's map from the data's frame."""
+        if self.upright is None:
+            return self.upright_json
+        return {**self.upright.to_json(), "similarity": self.model.similarity().to_json()}
 
     # -- entry ------------------------------------------------------------------------------------------------------
     def fit(self, resume: dict | None = None) -> CausalGS:
@@ -266,6 +269,7 @@ class Trainer:
         self.gaussians = train_canonical(self.gaussians, frames, cfg, progress=progress, log=log)
         self.stage_seconds["canonical"] = time.monotonic() - t0
         self.model = self._new_model()
+        self._normalise()
         self.run.save(self._payload("kinematic", 0))
 
     def _kinematic(self, start: int, opt_state) -> None:
@@ -328,6 +332,20 @@ class Trainer:
                       "static": int((~m.dynamic).sum()), "floor": int(floor.sum()),
                       "stray": int(stray.sum())})  # fmt: skip
 
+    def _normalise(self) -> None:
+        """Re-pose the new model into the normalising frame (:func:`~causalgs.model.upright.normalising`) for the
+        kinematic stage; nothing when ``frame.infer`` is off."""
+        if not self.config.frame.infer:
+            return
+        g = self.model.gaussians
+        with torch.no_grad():
+            points = g.means.detach()[torch.sigmoid(g.opacities.detach()) >= 0.5].double().numpy()
+        cams = np.stack([f.camera.center for f in self.data.train])
+        sim = normalising(points if len(points) >= 50 else g.means.detach().double().numpy(), cams, self.config.seed)
+        self.model.reframe(sim)
+        self._adopt_frame()
+        self.run.log({"stage": "canonical", "it": self.config.canonical.iterations, "normalised": sim.to_json()})
+
     def _upright(self, traj: torch.Tensor, dynamic: torch.Tensor, size: float) -> Similarity:
         """Infer the physics frame (:func:`~causalgs.model.upright.infer_upright`) from the static Gaussians, the
         tracked centroids of the dynamic ones' motion patterns and the cameras, and re-pose the model and the
@@ -345,11 +363,17 @@ class Trainer:
             groups = [k for k in torch.unique(label).tolist() if int((label == k).sum()) >= UPRIGHT_GROUP]
             tracks = np.stack([moving[:, label == k].mean(1).numpy() for k in groups], 1) if groups else np.zeros(0)
         cams = np.stack([f.camera.center for f in self.data.train])
-        self.upright = infer_upright(static, tracks, self.timeline.fps, cams, size, fc, self.config.seed)
-        sim = self.upright.similarity()
+        before = m.similarity()  # the data's frame to the normalising one
+        # what the config gives is in the data's frame and units; the evidence is in the normalising frame
+        given = FrameConfig(True, tuple(before.directions(fc.up)) if fc.up else (), fc.gravity * before.scale)
+        found = infer_upright(static, tracks, self.timeline.fps, cams, size, given, self.config.seed)
+        if found.gravity is None:  # not measured: the data's units taken as metres
+            found.gravity = GRAVITY * before.scale
+        sim = found.similarity()
         m.reframe(sim)
         self._adopt_frame()
-        self.run.log({"stage": "kinematic", "it": self.config.kinematic.iterations, "frame": self.upright.to_json()})
+        self.upright = found.mapped(before.inverse())  # up and gravity in the data's own frame and units
+        self.run.log({"stage": "kinematic", "it": self.config.kinematic.iterations, "frame": self.frame_json()})
         return sim
 
     def _adopt_frame(self) -> None:

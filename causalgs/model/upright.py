@@ -17,6 +17,10 @@ Up is the plane's normal where the plane agrees with free flight within :data:`A
 Gaussians fixes a direction more precisely than a few flights), else the flight's −g, else the plane's normal alone.
 Gravity's magnitude is the flight's acceleration along up; without free flight the scene is taken to be in metres.
 Neither a plane nor free flight: a one-line error that says how to give up by hand.
+
+Before the kinematic stage, whose settings have absolute units, the model is put into a *normalising* frame
+(:func:`normalising`: the canonical Gaussians' dominant plane up, a fixed extent), so that the kinematic fit, and the
+tracks the frame is then inferred from, do not depend on the data's own frame and scale.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ import numpy as np
 from causalgs.errors import CausalGSError
 from causalgs.similarity import Similarity, rotation_between
 
+REFERENCE_SIZE = 1.2  # the extent the kinematic stage sees a scene at (the benchmark scenes' floors are 1.2 m)
 GRAVITY = 9.8  # the simulator's gravity (causalgs.sim.effects "gravity" default), units/s² of the physics frame
 AGREE_DEG = 15.0  # a plane whose normal is this close to −g is the floor gravity acts towards
 WINDOW_SECONDS = 0.1  # sliding windows of free-flight detection (at least 5 frames)
@@ -95,6 +100,19 @@ class Upright:
         """x_physics = s R x with R taking up to +z (the smallest such turn) and s = 9.8 / gravity."""
         s = 1.0 if self.gravity is None else GRAVITY / self.gravity
         return Similarity.make(rotation_between(self.up, [0.0, 0.0, 1.0]), s, what="the inferred frame")
+
+    def mapped(self, sim: Similarity) -> Upright:
+        """The same evidence expressed in another frame (``sim`` maps this one's coordinates to it)."""
+        plane = None
+        if self.plane is not None:
+            n, d = sim.plane(self.plane.normal, self.plane.offset)
+            plane = Plane(n, d, self.plane.share, sim.scale * self.plane.rms)
+        flight = None
+        if self.flight is not None:
+            f = self.flight
+            flight = Flight(sim.vectors(f.g), f.flights, f.frames, sim.scale * f.rms, list(f.segments))
+        gravity = None if self.gravity is None else self.gravity * sim.scale
+        return Upright(sim.directions(self.up), gravity, self.source, plane, flight, list(self.notes))
 
     def to_json(self) -> dict:
         out = {"up": self.up.tolist(), "gravity": None if self.gravity is None else float(self.gravity),
@@ -267,6 +285,19 @@ def dominant_plane(points: np.ndarray, towards: np.ndarray, seed: int = 0, tries
     dist = (inl - centre) @ n
     share = float((np.abs((points - centre) @ n) < tol).sum() / len(points))
     return Plane(n, float(n @ centre), share, float(np.sqrt((dist**2).mean())))
+
+
+# -- before the kinematic stage ------------------------------------------------------------------------------------
+def normalising(points: np.ndarray, cameras: np.ndarray, seed: int = 0) -> Similarity:
+    """A first frame for the kinematic stage, from the canonical Gaussians [N, 3] alone: the dominant plane's normal
+    turned to +z (none found: no turn) and the scene scaled to :data:`REFERENCE_SIZE` across (its robust extent).
+    The kinematic stage has settings in absolute units (the pattern centres' step, the rest penalty on speeds, the
+    velocity network's output scale); in this frame they mean the same for any data's units."""
+    plane = dominant_plane(points, cameras.mean(0), seed)
+    R = np.eye(3) if plane is None else rotation_between(plane.normal, [0.0, 0.0, 1.0])
+    turned = points @ R.T
+    extent = float((np.quantile(turned, 0.99, axis=0) - np.quantile(turned, 0.01, axis=0)).max())
+    return Similarity.make(R, REFERENCE_SIZE / extent if extent > 0 else 1.0, what="the normalising frame")
 
 
 # -- both --------------------------------------------------------------------------------------------------------------
