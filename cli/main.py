@@ -17,6 +17,7 @@ from causalgs import __version__
 from causalgs.errors import CausalGSError
 from cli.model import cluster, eval_, fit, predict
 from cli.options import out_option, parse_rgb, seed_option
+from cli.reframe import reframe
 from cli.render import render
 
 
@@ -58,7 +59,8 @@ def cli():
 # Built commands
 # ---------------------------------------------------------------------------------------------------------------------
 @cli.command()
-@click.argument("name", type=click.Choice(["spin", "fallingball", "jelly", "collide", "room", "toss", "all"]))
+@click.argument("name", type=click.Choice(["spin", "fallingball", "jelly", "collide", "room", "toss", "bounce",
+                                           "tumble", "knock", "soft", "all"]))  # fmt: skip
 @out_option()
 @click.option("--views", type=click.IntRange(2, 200), default=20, show_default=True, help="Cameras on the ring.")
 @click.option("--frames", type=click.IntRange(2, 1000), default=89, show_default=True, help="Frames in time.")
@@ -81,8 +83,8 @@ def cli():
     "--fps",
     type=click.FloatRange(1.0, 10000.0),
     default=None,
-    help="Capture rate in frames per second [default: 120 for the simulated scenes, whose future frames then still "
-    "hold motion; 24 for spin].",
+    help="Capture rate in frames per second [default: 120 for the MPM scenes, 30 for bounce, 60 for tumble, knock "
+    "and soft, whose future frames then still hold motion; 24 for spin].",
 )
 @click.option(
     "--reference-res",
@@ -106,10 +108,15 @@ def synth(name, out, views, frames, resolution, background, seed, effects, fps, 
     collide      a stiff ball thrown into a soft block
     room         a static room with three objects of different materials running into each other
     toss         an elastic block tossed without spin, landing and sliding (the scene of `causalgs discover`)
-    all          the five benchmark scenes above (all but toss), each into --out/NAME
+    bounce       a ball thrown with spin, bouncing (restitution 0.8) and rolling (MuJoCo)
+    tumble       a box tossed with spin, tumbling and sliding to rest (MuJoCo)
+    knock        a ball thrown into a standing box, both moving after the impact (MuJoCo)
+    soft         a soft ball (MuJoCo flex) dropped with a roll, squashing and wobbling
+    all          the benchmark scenes above (all but toss), each into --out/NAME
 
-    All but spin are simulated by the project's MPM on a fine reference grid (--effects sets their external
-    effects) and rendered from embedded surface meshes by a z-buffer rasterizer; never by the model's rasterizer.
+    fallingball to toss are simulated by the project's MPM on a fine reference grid (--effects sets their external
+    effects), bounce to soft by MuJoCo, an independent engine; all are rendered from surface meshes by a z-buffer
+    rasterizer, never by the model's rasterizer.
 
     train = the first 3/4 of the frames from all but the held-out views; val = the same frames from the held-out
     views (interpolation); test = the remaining future frames from every view (extrapolation).
@@ -145,6 +152,7 @@ cli.add_command(fit)
 cli.add_command(predict)
 cli.add_command(eval_)
 cli.add_command(cluster)
+cli.add_command(reframe)
 
 
 from cli.bench import bench  # noqa: E402

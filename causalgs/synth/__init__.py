@@ -5,7 +5,8 @@ Each scene is a builder ``build(views=, frames=, resolution=, seed=, fps=) -> Sy
 (:mod:`causalgs.synth.writer`), so every scene has the same layout, split protocol and gt/ folder. Images come from
 analytic ray casting (:mod:`causalgs.synth.raycast`) for rigid scenes, and from surface meshes carried by the
 project's MPM at a reference resolution for deformable ones (:mod:`causalgs.synth.physics`, rendered by the z-buffer
-rasterizer of :mod:`causalgs.synth.mesh`): never from the model's Gaussian rasterizer.
+rasterizer of :mod:`causalgs.synth.mesh`), and from meshes posed by MuJoCo, an independent rigid and soft body engine,
+for the engine scenes (:mod:`causalgs.synth.engine_scenes`): never from the model's Gaussian rasterizer.
 """
 
 from __future__ import annotations
@@ -16,10 +17,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 from causalgs.errors import CausalGSError
-from causalgs.synth import physics, spin
+from causalgs.synth import engine_scenes, physics, spin
 from causalgs.synth.writer import SynthScene, check_out, protocol, write_dataset
 
-__all__ = ["BENCHMARK", "SCENES", "generate", "protocol"]
+__all__ = ["BENCHMARK", "ENGINE", "SCENES", "generate", "protocol"]
 
 SCENES: dict[str, Callable[..., SynthScene]] = {
     "spin": spin.build,
@@ -28,16 +29,23 @@ SCENES: dict[str, Callable[..., SynthScene]] = {
     "collide": physics.collide,
     "room": physics.room,
     "toss": physics.toss,
+    "bounce": engine_scenes.bounce,
+    "tumble": engine_scenes.tumble,
+    "knock": engine_scenes.knock,
+    "soft": engine_scenes.soft,
 }
 # The benchmark of fit / predict / eval (``causalgs synth all``); ``toss`` is the scene of ``causalgs discover``.
-BENCHMARK = ("spin", "jelly", "fallingball", "collide", "room")
+BENCHMARK = ("spin", "jelly", "fallingball", "collide", "room", "bounce", "tumble", "knock", "soft")
 # Scenes simulated by the MPM: they take an effects spec (any terms of the simulator's registry) and show progress.
 SIMULATED = {"jelly", "fallingball", "collide", "room", "toss"}
+# Scenes simulated by MuJoCo: their motion is the engine's, so they take neither an effects spec nor a reference grid.
+ENGINE = set(engine_scenes.SETUPS)
 
 
-# Frame rates of the scenes when --fps is not given: the spinning fan keeps turning at 24 fps; the simulated scenes
-# are captured at 120 fps so that their future frames still hold motion (see causalgs.synth.physics.FPS).
-DEFAULT_FPS = {name: (spin.FPS if name == "spin" else physics.FPS) for name in SCENES}
+# Frame rates of the scenes when --fps is not given: the spinning fan keeps turning at 24 fps; the MPM scenes are
+# captured at 120 fps and the engine scenes at 30-60 fps, so that their future frames still hold motion (see
+# causalgs.synth.physics.FPS and causalgs.synth.engine_scenes.FPS).
+DEFAULT_FPS = {name: spin.FPS if name == "spin" else engine_scenes.FPS.get(name, physics.FPS) for name in SCENES}
 
 
 def _check_options(name, views, frames, resolution, background, fps, reference_res=None) -> tuple[float, float, float]:
@@ -59,6 +67,10 @@ def _check_options(name, views, frames, resolution, background, fps, reference_r
     if len(bg) != 3 or not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in bg):
         raise CausalGSError(f"--background {background!r} must be three numbers in [0, 1]")
     return bg
+
+
+def _motion_of(name: str) -> str:
+    return "MuJoCo" if name in ENGINE else "analytic"
 
 
 def generate(
@@ -100,9 +112,9 @@ def generate(
         scene = SCENES[name](views=views, frames=frames, resolution=resolution, seed=seed, effects=effects,
                              progress=progress, fps=fps, **extra)  # fmt: skip
     elif reference_res is not None:
-        raise CausalGSError(f"scene '{name}' has analytic motion and takes no --reference-res")
+        raise CausalGSError(f"scene '{name}' has {_motion_of(name)} motion and takes no --reference-res")
     elif effects is not None:
-        raise CausalGSError(f"scene '{name}' has analytic motion and takes no --effects (simulated: "
+        raise CausalGSError(f"scene '{name}' has {_motion_of(name)} motion and takes no --effects (simulated: "
                             f"{', '.join(sorted(SIMULATED))})")  # fmt: skip
     else:
         scene = SCENES[name](views=views, frames=frames, resolution=resolution, seed=seed, fps=fps)
