@@ -32,14 +32,14 @@ __all__ = ["reframe_dataset", "transform_motion"]
 # directions (spins, normals), orientations (body-to-world rotations), deformation gradients, and what is not a
 # world quantity at all.
 _RULES: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("points", ("particles_rest", "particles", "trajectories", "c0", "c", "vertices_", "pose_c_", "contact_points",
-                "contact_position")),
-    ("vectors", ("velocity", "velocity_", "v", "contact_force")),
-    ("directions", ("omega", "omega_", "contact_normal")),
+    ("points", ("particles_rest", "particles", "trajectories", "c0", "c", "vertices_", "pose_c_",
+                "contact_event_position")),
+    ("vectors", ("velocity", "velocity_", "v")),
+    ("directions", ("omega", "omega_", "contact_event_normal")),
     ("orientations", ("R", "pose_R_")),
     ("deformations", ("F",)),
     ("same", ("times", "seconds", "fps", "object_ids", "part_ids", "particle_object", "triangles_", "body_points",
-              "body_normals", "contact", "contact_frame", "contact_bodies", "contact_pairs")),
+              "body_normals", "contact", "contact_event_seconds", "contact_event_frame", "contact_event_pair")),
 )
 
 
@@ -75,6 +75,8 @@ def _transform_meta(meta: dict, sim: Similarity, unknown: list[str]) -> dict:
             o["velocity"] = sim.vectors(o["velocity"]).tolist()
         if o.get("omega") is not None:
             o["omega"] = sim.directions(o["omega"]).tolist()
+        if o.get("quat") is not None:  # the body's orientation at t = 0 (wxyz, body to world)
+            o["quat"] = _quat_mul(sim.quaternion(), np.asarray(o["quat"], dtype=np.float64)).tolist()
     motion = meta.get("motion", {})
     if isinstance(motion.get("gravity"), list):
         motion["gravity"] = sim.vectors(motion["gravity"]).tolist()
@@ -98,6 +100,13 @@ def _transform_meta(meta: dict, sim: Similarity, unknown: list[str]) -> dict:
     meta["frame"] = {**before.then(sim).to_json(), "unchanged": sorted(unknown),
                      "rule": "x_here = scale * rotation @ x_original + translation"}  # fmt: skip
     return meta
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return np.array([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])  # fmt: skip
 
 
 def _check_out(out: Path, src: Path, overwrite: bool) -> None:
