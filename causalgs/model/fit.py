@@ -686,7 +686,8 @@ def run_frame(run_dir) -> Similarity:
 
 
 def load_model(run_dir, which: str = "checkpoint.pt") -> tuple[CausalGS, Dataset, Timeline]:
-    """The trained model of a run folder (``which``: checkpoint.pt or kinematic.pt), its dataset and timeline."""
+    """The trained model of a run folder (``which``: checkpoint.pt or kinematic.pt), its dataset (the cameras in the
+    model's frame) and timeline."""
     run = Run(Path(run_dir))
     config = FitConfig.load(run.config_path)
     info = read_json(run.info_path, "run info")
@@ -697,4 +698,4 @@ def load_model(run_dir, which: str = "checkpoint.pt") -> tuple[CausalGS, Dataset
     trainer = Trainer(data, run, config)
     model = _load_model(trainer, state, run.out / which)
     model.eval()
-    return model, data, trainer.timeline
+    return model, trainer.data, trainer.timeline
