@@ -48,6 +48,7 @@ from causalgs.model.upright import GRAVITY, FrameConfig, Upright, infer_upright,
 from causalgs.sim.effects import REGISTRY, Effects
 from causalgs.similarity import Similarity
 
+GRAVITY_Z = "gravity.g[2]"  # gravity's vertical component in the physics frame
 UPRIGHT_GROUP = 20  # a motion pattern tracked by fewer solid Gaussians gives no centroid for free flight
 
 STAGES = ("canonical", "kinematic", "physics", "assimilate", "done")
@@ -213,8 +214,22 @@ class Trainer:
         """The inferred physics frame as run.json records it (None when not inferred): up and gravity's magnitude in
         the data's frame and units, with their evidence, and ``similarity``, the model's map from the data's frame."""
         if self.upright is None:
-            return self.upright_json
-        return {**self.upright.to_json(), "similarity": self.model.similarity().to_json()}
+            out = self.upright_json
+        else:
+            out = {**self.upright.to_json(), "similarity": self.model.similarity().to_json()}
+        m = self.model
+        if self._learns_gravity(out) and m is not None and m.particles is not None:
+            names = m.simulator().effects.param_names()
+            if GRAVITY_Z in names:  # the physical stage's factor on the measured magnitude
+                out = {**out, "gravity_learned": out["gravity"] * -float(m.effect_params[names.index(GRAVITY_Z)])
+                       / GRAVITY}  # fmt: skip
+        return out
+
+    def _learns_gravity(self, frame: dict | None) -> bool:
+        """Whether the physical stage refines gravity's magnitude: when the fit measured it from free flight
+        (``frame.learn_gravity``; not when it was given, nor when nothing flew)."""
+        fc = self.config.frame
+        return bool(fc.infer and fc.learn_gravity and fc.gravity == 0 and frame and frame.get("flight") is not None)
 
     # -- entry ------------------------------------------------------------------------------------------------------
     def fit(self, resume: dict | None = None) -> CausalGS:
@@ -392,9 +407,11 @@ class Trainer:
                           "effects": effects})  # fmt: skip
         f = m.fields
         mask = m.learn_mask()
+        names = m.simulator().effects.param_names()
+        if self._learns_gravity(self.frame_json()) and GRAVITY_Z in names:
+            mask[names.index(GRAVITY_Z)] = True
         # Per-parameter step sizes: plane offsets (metres) move at a twentieth of the rate of dimensionless parameters
         # such as friction coefficients, so one Adam step shifts a ground plane by about a millimetre.
-        names = m.simulator().effects.param_names()
         step_scale = torch.tensor([LENGTH_STEP if n.split("[")[0].split(".")[1] in LENGTHS else 1.0 for n in names],
                                   dtype=torch.float64)  # fmt: skip
         nets = [*f.f_vel.parameters(), *f.f_neck.parameters(), *f.f_weight.parameters()]

@@ -107,9 +107,9 @@ def frame_report(frame: dict | None, data_dir) -> dict | None:
     up_true = -g / np.linalg.norm(g)
     up = np.asarray(frame["up"], dtype=np.float64)
     angle = float(np.degrees(np.arccos(np.clip(up @ up_true / np.linalg.norm(up), -1.0, 1.0))))
-    gravity = frame.get("gravity")
+    gravity = frame.get("gravity_learned", frame.get("gravity"))
     return {"up": up.tolist(), "up_true": up_true.tolist(), "up_error_deg": angle, "source": frame.get("source"),
-            "gravity": gravity, "gravity_true": float(np.linalg.norm(g)),
+            "gravity": gravity, "gravity_measured": frame.get("gravity"), "gravity_true": float(np.linalg.norm(g)),
             "gravity_ratio": None if gravity is None else float(gravity / np.linalg.norm(g))}  # fmt: skip
 
 

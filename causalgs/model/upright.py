@@ -53,11 +53,15 @@ class FrameConfig:
     - ``infer``: infer up and gravity's magnitude from the video; false: the data's frame is taken as z up, metres.
     - ``up``: the data's up direction, when known (three numbers; empty: inferred).
     - ``gravity``: gravity's magnitude in the data's units per s², when known (0: measured from free flight).
+    - ``learn_gravity``: refine the measured magnitude in the physical stage (the simulator's gravity is trained with
+      the materials; run.json ``frame.gravity_learned``). A flight tracked by the kinematic fit gives it within about
+      5-10%; the simulation of the flight against the images narrows it.
     """
 
     infer: bool = True
     up: tuple[float, ...] = ()
     gravity: float = 0.0
+    learn_gravity: bool = True
 
     def __post_init__(self):
         self.up = tuple(float(a) for a in self.up)
