@@ -66,9 +66,15 @@ def fit(data, out, preset, config_path, overrides, no_physics, resume, seed, dev
     from causalgs.model.fit import fit as run_fit
 
     if resume:
-        if config_path or overrides or no_physics:
-            raise CausalGSError("--resume continues with the run's saved config.toml; drop --config/--set/--no-physics")
+        if config_path or no_physics or any(not o.strip().startswith("frame.") for o in overrides):
+            raise CausalGSError("--resume continues with the run's saved config.toml; drop --config, --no-physics and "
+                                "every --set but frame.* (the physics frame is found where the kinematic stage ends)")
         config = None
+        if overrides:
+            d = to_dict(FitConfig.load(Path(out) / "config.toml"))
+            for item in overrides:
+                apply_override(d, item)
+            config = from_dict(FitConfig, d)
     else:
         config = FitConfig.load(config_path) if config_path else FitConfig.preset_config(preset)
         d = to_dict(config)

@@ -631,11 +631,14 @@ def _clamped(m: CausalGS, values: np.ndarray) -> np.ndarray:
 
 
 def fit(data_dir, out, config: FitConfig | None = None, *, resume: bool = False, progress=None) -> CausalGS:
-    """Fit a scene (see the module docstring). With ``resume`` the run folder's config and checkpoint are used."""
+    """Fit a scene (see the module docstring). With ``resume`` the run folder's config and checkpoint are used (a
+    ``config`` given with ``resume`` replaces the saved one: the CLI allows only its frame settings to change)."""
     out = Path(out)
     run = Run(out)
     state = None
     if resume:
+        if config is not None:  # frame settings changed on resume (they act where the kinematic stage ends)
+            config.save(run.config_path)
         config = FitConfig.load(run.config_path)
         info = read_json(run.info_path, "run info")
         data_dir = info["data"]

@@ -334,5 +334,5 @@ def infer_upright(static: np.ndarray, tracks: np.ndarray, fps: float, cameras: n
             notes.append("no free flight: gravity's magnitude not measured, the scene taken to be in metres")
         return Upright(plane.normal, given_g, "plane", plane, None, notes)
     raise CausalGSError("cannot infer the up direction: the static scene has no dominant plane and nothing is seen in "
-                        "free flight; give it with --set frame.up=[x,y,z] (or --set frame.infer=false for a z-up "
-                        "metric frame)")  # fmt: skip
+                        "free flight; give it with --set frame.up=[x,y,z] (or frame.infer=false for a z-up metric "
+                        "frame), with --resume to continue this run")  # fmt: skip

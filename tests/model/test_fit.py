@@ -179,6 +179,35 @@ def test_resume_continues_from_the_last_checkpoint(scene, tmp_path):
     assert json.loads((run / "run.json").read_text())["status"] == "done"
 
 
+def test_an_up_that_cannot_be_inferred_is_a_one_line_error_and_the_run_resumes_with_it_given(scene, tmp_path,
+                                                                                             monkeypatch):
+    """Where neither a plane nor free flight shows up, the fit stops with one line that says how to give it; the
+    run keeps its stages and continues with ``--resume --set frame.up=...`` (only frame settings may change)."""
+    from causalgs.model import upright
+    from cli.main import cli
+
+    def nothing_found(static, tracks, fps, cameras, size, config, seed=0):
+        return upright.infer_upright(np.zeros((0, 3)), np.zeros(0), fps, cameras, size, config, seed)
+
+    monkeypatch.setattr("causalgs.model.fit.infer_upright", nothing_found)
+    run = tmp_path / "run"
+    args = ["fit", str(scene), "--out", str(run), "--no-physics"]
+    for group, vals in TINY.items():
+        if group != "physics":
+            args += [f for k, v in vals.items() if k != "infer" for f in ("--set", f"{group}.{k}={json.dumps(v)}")]
+    r = CliRunner().invoke(cli, args)
+    last = r.output.strip().splitlines()[-1]  # after the stages' progress bars
+    assert r.exit_code == 1 and last.startswith("Error: cannot infer the up direction") and "--resume" in last
+    assert "Traceback" not in r.output
+    assert torch.load(run / "checkpoint.pt", weights_only=False)["stage"] == "kinematic"
+    r = CliRunner().invoke(cli, ["fit", str(scene), "--out", str(run), "--resume", "--set", "kinematic.lr=1"])
+    assert r.exit_code == 1 and "frame.*" in r.output
+    r = CliRunner().invoke(cli, ["fit", str(scene), "--out", str(run), "--resume", "--set", "frame.up=[0, 0, 1]"])
+    assert r.exit_code == 0, r.output
+    info = json.loads((run / "run.json").read_text())
+    assert info["status"] == "done" and info["frame"]["source"] == "given"
+
+
 def test_bad_inputs_are_one_line_errors(tmp_path, scene):
     from cli.main import cli
 
