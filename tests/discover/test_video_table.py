@@ -110,7 +110,7 @@ def _recorders(monkeypatch, calls, *, fail=()):
     monkeypatch.setattr(V, "_generate", generate)
     monkeypatch.setattr(V, "_run_fit", fit)
     monkeypatch.setattr(V, "_discover", discover)
-    monkeypatch.setattr(V, "tracking_error", lambda obs, data: 0.0015 if obs.x.sum() == 0 else 0.008)
+    monkeypatch.setattr(V, "tracking_error", lambda obs, data, frame=None: 0.0015 if obs.x.sum() == 0 else 0.008)
 
 
 def test_the_table_resumes_each_stage_and_records_failures(tmp_path, monkeypatch):
