@@ -193,7 +193,7 @@ def fit_(data_root, out_root, scenes, preset, lpips_nets, as_json, device):
 
     from causalgs import _ti
     from causalgs.model.config import FitConfig
-    from causalgs.model.evaluate import evaluate
+    from causalgs.model.evaluate import DYNAMICS, evaluate
     from causalgs.model.fit import fit as run_fit
     from cli.model import _nets
 
@@ -205,7 +205,7 @@ def fit_(data_root, out_root, scenes, preset, lpips_nets, as_json, device):
             resume = (run / "checkpoint.pt").is_file()
             run_fit(Path(data_root) / scene, run, None if resume else FitConfig.preset_config(preset), resume=resume)
         info = json.loads((run / "run.json").read_text())
-        metrics = evaluate(run, lpips_nets=_nets(lpips_nets))
+        metrics = evaluate(run, dynamics=DYNAMICS, lpips_nets=_nets(lpips_nets))
         row = {"scene": scene, "preset": preset, "fit_seconds": info.get("total_seconds"),
                "stage_seconds": info.get("stage_seconds"), **metrics}  # fmt: skip
         rows.append(row)
