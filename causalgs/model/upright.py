@@ -13,8 +13,9 @@ fit infers them after the kinematic stage and re-poses the model into that frame
   0.5% of the scene size), refined by least squares; it counts if it holds a quarter of them. Its normal points to
   the cameras' side (a floor is seen from above).
 
-Up is the plane's normal where the plane agrees with free flight within :data:`AGREE_DEG` (a plane of thousands of
-Gaussians fixes a direction more precisely than a few flights), else the flight's −g, else the plane's normal alone.
+Up is the plane's normal, with gravity from free flight along it (within :data:`AGREE_DEG`; a plane of thousands of
+Gaussians fixes a direction more precisely than a few flights); without a plane, the flight's −g. A steady
+acceleration across the plane is a body sliding or rolling to rest, never taken for gravity.
 Gravity's magnitude is the flight's acceleration along up; without free flight the scene is taken to be in metres.
 Neither a plane nor free flight: a one-line error that says how to give up by hand.
 
@@ -323,13 +324,14 @@ def infer_upright(static: np.ndarray, tracks: np.ndarray, fps: float, cameras: n
             up = plane.normal if -flight.g @ plane.normal > 0 else -plane.normal
             return Upright(up, given_g or float(-flight.g @ up), "plane+flight", plane, flight)
     flight = free_flight(tracks, fps, size) if tracks.size else None
-    if flight is not None and plane is not None:
-        angle = math.degrees(math.acos(np.clip(abs(plane.normal @ flight.g) / np.linalg.norm(flight.g), -1, 1)))
-        notes.append(f"free flight is {angle:.0f}° off the dominant plane's normal: up from free flight")
-    if flight is not None:
+    if flight is not None and plane is None:
         up = -flight.g / np.linalg.norm(flight.g)
-        return Upright(up, given_g or float(np.linalg.norm(flight.g)), "flight", plane, flight, notes)
+        return Upright(up, given_g or float(np.linalg.norm(flight.g)), "flight", None, flight, notes)
     if plane is not None:
+        if flight is not None:  # steady, but across the floor: a body sliding or rolling to rest, not falling
+            angle = math.degrees(math.acos(np.clip(abs(plane.normal @ flight.g) / np.linalg.norm(flight.g), -1, 1)))
+            notes.append(f"the only steady acceleration seen is {angle:.0f}° off the floor's normal (sliding or "
+                         f"rolling, not falling): up from the floor")  # fmt: skip
         if given_g is None:
             notes.append("no free flight: gravity's magnitude not measured, the scene taken to be in metres")
         return Upright(plane.normal, given_g, "plane", plane, None, notes)

@@ -116,3 +116,13 @@ def test_sliding_on_the_floor_is_not_taken_for_gravity():
 def test_bad_frame_settings_are_one_line_errors(bad):
     with pytest.raises(CausalGSError, match="frame"):
         FrameConfig(**bad)
+
+
+def test_with_a_floor_and_only_sliding_up_is_the_floors():
+    """A steady acceleration across the floor (a box sliding to rest) is never taken for gravity: up comes from the
+    floor, gravity's magnitude is not measured."""
+    tracks = np.stack([sliding(frames=140), sliding(frames=140) + np.array([0, 0.3, 0])], 1)
+    assert free_flight(tracks, FPS, 3.0) is not None  # alone, the sliding would pass for a flight
+    u = infer_upright(floor_points(), tracks, FPS, CAMERAS, 3.0, FrameConfig())
+    assert u.source == "plane" and u.up @ [0, 0, 1] > 0.999 and u.gravity is None
+    assert any("sliding or rolling" in n for n in u.notes)
