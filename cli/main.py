@@ -46,12 +46,12 @@ def cli():
 
     \b
     Typical session:
-      causalgs synth spin --out data/spin       # a built-in scene with ground truth
-      causalgs info data/spin                   # check a dataset and print its summary
-      causalgs fit data/spin --out runs/spin    # learn the scene (--preset quick|full)
-      causalgs predict runs/spin --frames 22    # extrapolate the future with the simulator
-      causalgs eval runs/spin                   # interpolation and extrapolation metrics
-      causalgs render runs/spin --view 3 --time 0.9 --out v3.png
+      causalgs synth bounce --out data/bounce       # a built-in scene with ground truth
+      causalgs info data/bounce                     # check a dataset and print its summary
+      causalgs fit data/bounce --out runs/bounce    # learn the scene (--preset quick|full)
+      causalgs predict runs/bounce --frames 22      # extrapolate the future with the simulator
+      causalgs eval runs/bounce                     # interpolation and extrapolation metrics
+      causalgs render runs/bounce --view 3 --time 0.9 --out v3.png
     """
 
 
