@@ -108,7 +108,7 @@ class Similarity:
         return out
 
     def plane(self, n, d: float) -> tuple[np.ndarray, float]:
-        """The plane n·x = d re-posed: n' = R n (unit), d' = s d |n| / |n| + n'·t for a unit n."""
+        """The plane n·x = d re-posed: n' = R n / |n| and d' = s d / |n| + n'·t."""
         n = np.asarray(n, dtype=np.float64)
         norm = float(np.linalg.norm(n))
         n_unit = self.R @ (n / norm)
