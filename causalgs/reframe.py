@@ -76,7 +76,7 @@ def _transform_meta(meta: dict, sim: Similarity, unknown: list[str]) -> dict:
         if o.get("omega") is not None:
             o["omega"] = sim.directions(o["omega"]).tolist()
         if o.get("quat") is not None:  # the body's orientation at t = 0 (wxyz, body to world)
-            o["quat"] = _quat_mul(sim.quaternion(), np.asarray(o["quat"], dtype=np.float64)).tolist()
+            o["quat"] = sim.quaternions(o["quat"]).tolist()
     motion = meta.get("motion", {})
     if isinstance(motion.get("gravity"), list):
         motion["gravity"] = sim.vectors(motion["gravity"]).tolist()
@@ -100,13 +100,6 @@ def _transform_meta(meta: dict, sim: Similarity, unknown: list[str]) -> dict:
     meta["frame"] = {**before.then(sim).to_json(), "unchanged": sorted(unknown),
                      "rule": "x_here = scale * rotation @ x_original + translation"}  # fmt: skip
     return meta
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return np.array([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])  # fmt: skip
 
 
 def _check_out(out: Path, src: Path, overwrite: bool) -> None:

@@ -95,6 +95,13 @@ class Similarity:
         """Deformation gradients [..., 3, 3]: R F Rᵀ."""
         return self.R @ np.asarray(F, dtype=np.float64) @ self.R.T
 
+    def quaternions(self, q) -> np.ndarray:
+        """Orientations as wxyz quaternions [..., 4] (body to world), turned: q_R ⊗ q."""
+        aw, ax, ay, az = self.quaternion()
+        bw, bx, by, bz = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
+        return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                         aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)  # fmt: skip
+
     def quaternion(self) -> np.ndarray:
         """R as a unit wxyz quaternion."""
         return _rotmat_quat(self.R)

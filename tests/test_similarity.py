@@ -53,6 +53,8 @@ def test_quantities_transform_consistently():
     out = s.camera_to_world(c2w)
     assert np.allclose(out[:3, :3] @ out[:3, :3].T, np.eye(3)) and np.allclose(out[:3, 3], s.points(c2w[:3, 3]))
     assert np.allclose(s.quaternion(), Similarity.make(s.R).quaternion())
+    q = Similarity.make(Q).quaternion()  # the body's orientation, turned as a quaternion and as a matrix
+    assert np.allclose(Similarity.make(s.orientations(Q)).quaternion(), s.quaternions(q))
 
 
 def test_rotation_between_and_parse():
