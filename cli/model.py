@@ -99,7 +99,7 @@ def fit(data, out, preset, config_path, overrides, no_physics, resume, seed, dev
 @click.argument("run", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--frames", type=click.IntRange(min=1), default=22, show_default=True, help="Future frames to predict.")
 @click.option("--dynamics", type=click.Choice(DYNAMICS), default="mpm", show_default=True,
-              help="mpm: the simulator continuing from the last observed frame; mpm-open: the simulator replaying "
+              help="mpm: the tracked state, then the simulator continuing from it; mpm-open: the simulator replaying "
               "everything from t = 0; velocity: the kinematic field extrapolated; frozen: the last observed frame; "
               "kinematic-only: the model before its physical stage.")
 @click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path),

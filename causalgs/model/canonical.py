@@ -254,7 +254,8 @@ class CanonicalTrainer:
     """One canonical training run: the Gaussians (trained in place), the optimizer state, the densification
     statistics and the schedules. :func:`train_canonical` drives it; tests call its steps one by one."""
 
-    def __init__(self, gaussians: Gaussians, frames: Sequence, config: CanonicalConfig | None = None):
+    def __init__(self, gaussians: Gaussians, frames: Sequence, config: CanonicalConfig | None = None,
+                 keep_sh_degree: bool = False):  # fmt: skip
         if not frames:
             raise CausalGSError("canonical training needs at least one frame")
         self.gaussians, self.frames = gaussians, list(frames)
@@ -268,7 +269,8 @@ class CanonicalTrainer:
         self.white = all(np.all(np.asarray(f.background) == 1.0) for f in self.frames)
         self.iteration = 0
         self._order: list[int] = []
-        gaussians.active_sh_degree = 0
+        if not keep_sh_degree:  # a fresh fit raises the degree on its schedule; a continued one keeps it
+            gaussians.active_sh_degree = 0
 
     # -- one iteration --------------------------------------------------------------------------------------------
     def step(self) -> dict:

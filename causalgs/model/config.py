@@ -17,9 +17,11 @@ import tomllib
 
 from causalgs.errors import CausalGSError
 from causalgs.io import write_text
+from causalgs.model.appearance import AppearanceConfig
 from causalgs.model.canonical import CanonicalConfig
 from causalgs.model.fields import FieldsConfig
 from causalgs.model.particles import FILLS
+from causalgs.model.residual import ResidualConfig
 from causalgs.model.upright import FrameConfig
 from causalgs.settings import check_keys
 
@@ -31,6 +33,11 @@ class KinematicConfig:
     iterations: int = 1500
     lr: float = 2e-3  # Adam, f_vel / f_neck / f_weight
     lr_centres: float = 1e-3  # the pattern centres (metres)
+    lr_frame_twists: float = 0.02  # the per-frame twists T (m/s and rad/s per step; causalgs.model.fields)
+    # After each Adam step the per-frame twists shrink towards zero by this share of a step (the proximal step of an
+    # L1 penalty): a twist that the images do not push the same way step after step stays at zero. Adam moves every
+    # entry by about a step whatever its gradient's size, and without the shrink the floor's pattern drifted away.
+    frame_twists_shrink: float = 0.5
     window_start: int = 2  # frames in the trained window at the start of the curriculum
     window_ramp: float = 0.6  # fraction of the iterations after which the window covers every training frame
     window_power: float = 2.0  # the window grows as (iteration / ramp)^power: slowly over the first frames
@@ -44,6 +51,10 @@ class KinematicConfig:
     substeps: int = 1  # RK2 steps per frame interval
     lambda_dssim: float = 0.2
     static_threshold: float = 0.01  # a Gaussian that moves less than this fraction of the scene size is static
+    # the Gaussians trained with the motion on every observed frame (causalgs.model.appearance)
+    appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
+    # the deformation residual inside the observed window (causalgs.model.residual)
+    residual: ResidualConfig = field(default_factory=ResidualConfig)
 
 
 @dataclass

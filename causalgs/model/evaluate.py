@@ -2,10 +2,11 @@
 
 Dynamics (``--dynamics``):
 
-- ``mpm``: the model's prediction: inside the observed window the simulator from t = 0 with the inferred causes; after
-  it the simulator with the inferred materials and effects continuing from the forecast's start
-  (:meth:`CausalGS.forecast`: the state near the end of the window, tracked or replayed, that forecast the newest
-  observed frames best), as a forecast starts from the latest measurement;
+- ``mpm``: the model's prediction: inside the observed window its best reconstruction of what was seen, the tracked
+  state (as FreeGave's and the paper's interpolation renders); after it the simulator with the inferred materials
+  and effects continuing from the forecast's start (:meth:`CausalGS.forecast`: the state near the end of the
+  window, tracked or replayed, that forecast the newest observed frames best), as a forecast starts from the latest
+  measurement;
 - ``mpm-open``: the simulator from t = 0 for every frame (open loop: the whole sequence replayed from the causes);
 - ``velocity``: the kinematic field integrated past the observed window (f_weight(t) extrapolated);
 - ``frozen``: the scene held at the last observed frame by the kinematic-only model (a baseline);
@@ -45,7 +46,6 @@ def states(model: CausalGS, frames, dynamics: str) -> dict[int, State]:
     frames = sorted({int(k) for k in frames})
     if not frames:
         return {}
-    last = frames[-1]
     with torch.no_grad():
         if dynamics in ("mpm", "mpm-open"):
             if model.particles is None:
@@ -53,7 +53,9 @@ def states(model: CausalGS, frames, dynamics: str) -> dict[int, State]:
             inside = frames if dynamics == "mpm-open" else [k for k in frames if k < model.train_frames]
             after = [k for k in frames if k not in inside]
             result = {}
-            if inside:
+            if inside and dynamics == "mpm":
+                result.update(zip(inside, model.observed(inside), strict=True))
+            elif inside:
                 out = model.simulate(inside)
                 result.update(zip(inside, model.physical_states(out["x"], out["F"]), strict=True))
             if after:
@@ -61,13 +63,11 @@ def states(model: CausalGS, frames, dynamics: str) -> dict[int, State]:
                 result.update(zip(after, model.physical_states(out["x"], out["F"]), strict=True))
             return result
         if dynamics in ("velocity", "kinematic-only"):
-            means, quats = model.kinematic(last, frames=frames)
-            return {k: State(means[i], quats[i]) for i, k in enumerate(frames)}
+            return dict(zip(frames, model.observed(frames), strict=True))
         if dynamics == "frozen":
             held = sorted({min(k, model.train_frames - 1) for k in frames})
-            means, quats = model.kinematic(held[-1], frames=held)
-            at = {k: i for i, k in enumerate(held)}
-            return {k: State(means[at[min(k, held[-1])]], quats[at[min(k, held[-1])]]) for k in frames}
+            at = dict(zip(held, model.observed(held), strict=True))
+            return {k: at[min(k, held[-1])] for k in frames}
     raise CausalGSError(f"unknown dynamics '{dynamics}' (choose from {', '.join(DYNAMICS)})")
 
 
@@ -105,7 +105,7 @@ def evaluate(run_dir, *, dynamics=EVAL_DYNAMICS, lpips_nets=("alex", "vgg"), pro
         bg = data.background
         for split, key in (("val", "interpolation"), ("test", "extrapolation")):
             frames = data.splits[split]
-            if not frames or (split == "val" and dyn in ("frozen", "mpm-open")):  # mpm-open = mpm inside
+            if not frames or (split == "val" and dyn == "frozen"):  # frozen = kinematic-only inside
                 continue
             preds = render_images(model, tl, frames, dyn, bg)
             result[key][dyn] = image_metrics(preds, [f.image for f in frames], lpips_nets=lpips_nets)

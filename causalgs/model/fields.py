@@ -6,7 +6,10 @@ All of it is plain torch (no Taichi field is touched here; DESIGN.md "One path f
 - z = f_vel(γ(p)): the latent physics code of the particle at canonical position p;
 - h = f_neck(z) ∈ Δ^K: a softmax over K motion patterns (a particle belongs to a mixture of patterns, so the patterns
   act as soft objects and the clustering reads them directly);
-- W_t = f_weight(γ_t(t)) ∈ R^{K×6}: what each pattern does at time t, as a 6-DoF twist (3 linear + 3 angular);
+- W_t = f_weight(γ_t(t)) + T(t) ∈ R^{K×6}: what each pattern does at time t, as a 6-DoF twist (3 linear + 3
+  angular). T is a table of one twist per observed frame, interpolated linearly and held at its last value after
+  the window: the MLP's spectral bias smooths a bounce over many frames (the tracked ball of the bounce benchmark
+  flew 20 cm below its apexes), while a frame's own twist turns the velocity within that frame;
 - v(p, t) = Σ_k h_k [u_k(t) + ω_k(t) × (p − c_k)]: the divergence-free 6-DoF basis B(p), with every pattern rotating
   about its own learned centre c_k (not only the world origin);
 - m = f_mat(γ(p)) + h·Θ: Young's modulus (log-space, bounded), Poisson ratio and density (bounded). Θ ∈ R^{K×3}
@@ -45,6 +48,7 @@ class FieldsConfig:
     width: int = 64  # hidden width of every MLP
     depth: int = 2  # hidden layers of every MLP
     pos_freqs: int = 4  # frequencies of γ(p)
+    frame_twists: bool = True  # T(t): a learned twist per observed frame on top of f_weight's
     time_freqs: int = 6  # frequencies of γ_t(t): the shortest period is 1/16 of the window (4 frames of 67), so a
     # bounce or an impact, which turns the velocity within a frame or two, is not smoothed over a dozen frames
     E_range: tuple[float, float] = (2.0e3, 4.0e5)  # Pa
@@ -125,9 +129,11 @@ def _logit(x: float) -> float:
 class InversePhysics(nn.Module):
     """f_vel, f_neck, f_weight, f_mat and the pattern centres c_k (see the module docstring).
 
-    ``lo, hi``: the scene box, used to normalise positions for γ(p) and to place the initial centres."""
+    ``lo, hi``: the scene box, used to normalise positions for γ(p) and to place the initial centres; ``duration``:
+    the observed window in seconds; ``frames``: its frame count, the knots of the per-frame twists T (fewer than 2,
+    or ``frame_twists`` off: no table)."""
 
-    def __init__(self, config: FieldsConfig, lo, hi, duration: float = 1.0):
+    def __init__(self, config: FieldsConfig, lo, hi, duration: float = 1.0, frames: int = 0):
         super().__init__()
         self.config = c = config
         lo, hi = torch.as_tensor(lo, dtype=torch.float32), torch.as_tensor(hi, dtype=torch.float32)
@@ -152,12 +158,16 @@ class InversePhysics(nn.Module):
                 _logit((math.log(c.E_init) - logE[0]) / span), _logit((c.nu_init - c.nu_range[0]) / nu_span), 0.0
             ]))  # fmt: skip
         self.pattern_materials = nn.Parameter(torch.zeros(c.patterns, 3))  # Θ: per-pattern material offsets
+        knots = int(frames) if c.frame_twists and frames >= 2 else 0
+        self.frame_twists = nn.Parameter(torch.zeros(knots, c.patterns, 6))  # T: one twist per observed frame
+        self.duration = max(float(duration), 1e-6)
         g = torch.Generator().manual_seed(0)
         self.centres = nn.Parameter(centre + (torch.rand(c.patterns, 3, generator=g) - 0.5) * half)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         if prefix + "f_mat.0.weight" in state_dict and prefix + "pattern_materials" not in state_dict:
             state_dict[prefix + "pattern_materials"] = torch.zeros_like(self.pattern_materials)  # an older model
+        state_dict.setdefault(prefix + "frame_twists", torch.zeros_like(self.frame_twists))  # saved before T existed
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def reframe(self, sim) -> None:
@@ -174,6 +184,8 @@ class InversePhysics(nn.Module):
         with torch.no_grad():
             last.weight.copy_((block @ last.weight.double()).to(last.weight.dtype))
             last.bias.copy_((block @ last.bias.double()).to(last.bias.dtype))
+            T = self.frame_twists.double().reshape(len(self.frame_twists), K * 6)
+            self.frame_twists.copy_((T @ block.T).reshape(self.frame_twists.shape).to(self.frame_twists.dtype))
             self.centres.copy_(torch.as_tensor(sim.points(self.centres.double().numpy())).to(self.centres.dtype))
 
     # -- per particle ----------------------------------------------------------------------------------------------
@@ -202,9 +214,17 @@ class InversePhysics(nn.Module):
 
     # -- per time ---------------------------------------------------------------------------------------------------
     def twists(self, t: torch.Tensor) -> torch.Tensor:
-        """W_t = f_weight(γ_t(t)) [T, K, 6]: linear (u) then angular (ω) velocity of every pattern."""
+        """W_t = f_weight(γ_t(t)) + T(t) [T, K, 6]: linear (u) then angular (ω) velocity of every pattern."""
         t = torch.as_tensor(t, dtype=self.centres.dtype).reshape(-1, 1)
-        return self.f_weight(self.enc_t(t)).reshape(len(t), self.config.patterns, 6)
+        W = self.f_weight(self.enc_t(t)).reshape(len(t), self.config.patterns, 6)
+        n = len(self.frame_twists)
+        if n == 0:
+            return W
+        s = (t[:, 0] / self.duration * (n - 1)).clamp(0.0, n - 1.0)  # in knots; held at the ends
+        i = s.detach().floor().long().clamp(max=n - 2)
+        w = (s - i.to(s.dtype))[:, None, None]
+        T = self.frame_twists.to(W.dtype)
+        return W + (1.0 - w) * T[i] + w * T[i + 1]
 
     def affine(self, h: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Per-particle velocity field at times t: v_i(x, t) = a[t, i] + ω[t, i] × x. Returns a, ω [T, N, 3]."""

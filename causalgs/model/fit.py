@@ -39,6 +39,7 @@ from causalgs.dataset import Dataset, Frame, load_dataset
 from causalgs.errors import CausalGSError
 from causalgs.io import read_json, write_bytes, write_json
 from causalgs.metrics import ssim
+from causalgs.model.appearance import JointAppearance
 from causalgs.model.canonical import train_canonical
 from causalgs.model.config import FitConfig
 from causalgs.model.gaussians import Gaussians
@@ -140,6 +141,24 @@ def initial_gaussians(data: Dataset, config: FitConfig) -> Gaussians:
     lo, hi = centres.min(0), centres.max(0)
     mid, half = (lo + hi) / 2, 0.35 * float((hi - lo).max())
     return Gaussians.random(config.init_points, mid - half, mid + half, seed=config.seed, sh_degree=deg)
+
+
+class Optimizers:
+    """Several optimisers saved and restored as one (a stage's checkpoint holds one optimiser state); ``None``
+    members are skipped."""
+
+    def __init__(self, **members):
+        self.members = {k: v for k, v in members.items() if v is not None}
+
+    def state_dict(self) -> dict:
+        return {k: v.state_dict() for k, v in self.members.items()}
+
+    def load_state_dict(self, state: dict) -> None:
+        if set(state) != set(self.members):
+            raise CausalGSError(f"the checkpoint's optimiser state holds {sorted(state)}, this stage trains "
+                                f"{sorted(self.members)}: resume with the run's own config")  # fmt: skip
+        for k, v in self.members.items():
+            v.load_state_dict(state[k])
 
 
 class Trainer:
@@ -292,19 +311,29 @@ class Trainer:
         m, kc = self.model, self.config.kinematic
         f = m.fields
         nets = [*f.f_vel.parameters(), *f.f_neck.parameters(), *f.f_weight.parameters()]
-        opt = torch.optim.Adam([{"params": nets, "lr": kc.lr}, {"params": [f.centres], "lr": kc.lr_centres}])
+        opt = torch.optim.Adam([{"params": nets, "lr": kc.lr}, {"params": [f.centres], "lr": kc.lr_centres},
+                                {"params": [f.frame_twists], "lr": kc.lr_frame_twists}])  # fmt: skip
         reach = kc.rest_reach * float((m.hi - m.lo).max())  # a rotation rate times this is a speed
+        joint = None
+        if kc.appearance.enabled:
+            joint = JointAppearance(m, self.config.canonical, kc.appearance, self.train[0], kc.iterations)
+        rc = kc.residual
+        residual_opt = torch.optim.Adam(m.residual.parameters(), lr=rc.lr) if m.residual is not None else None
+        residual_from = int(rc.start * kc.iterations)
+        optimizers = Optimizers(fields=opt, gaussians=joint, residual=residual_opt)
         if opt_state is not None:
-            opt.load_state_dict(opt_state)
+            optimizers.load_state_dict(opt_state)
         for it in range(start, kc.iterations):
             window = self._window(it, kc.iterations, kc.window_start, kc.window_ramp, kc.window_power)
             picks = self._sample(window, kc.views_per_iter, newest=kc.newest_frames)
-            steps = max(k for k, _ in picks)
-            means, quats = m.kinematic(steps, frames=[k for k, _ in picks])
-            loss = 0.0
-            for i, (_, frame) in enumerate(picks):
-                img, _, _ = m.gaussians.render(frame.camera, self.bg, means=means[i], quats=quats[i])
+            states = m.observed([k for k, _ in picks], residual=it >= residual_from)
+            loss, metas = 0.0, []
+            for state, (_, frame) in zip(states, picks, strict=True):
+                img, _, meta = m.gaussians.render(frame.camera, self.bg, **state.overrides())
+                metas.append((meta, frame.camera))
                 loss = loss + tracking_loss(img, self._gt(frame), kc.lambda_dssim, kc.blur) / len(picks)
+                if state.offset is not None and rc.lambda_size > 0:  # the smallest residual that explains the images
+                    loss = loss + rc.lambda_size * (state.offset / m.residual.bound()).square().mean() / len(picks)
             if kc.lambda_rest > 0:  # bodies at rest unless the images say otherwise: L1 on the patterns' twists
                 W = f.twists(torch.arange(window, dtype=torch.float64).to(f.centres.dtype) / self.timeline.fps)
                 loss = loss + kc.lambda_rest * (W[..., :3].norm(dim=-1) + reach * W[..., 3:].norm(dim=-1)).mean()
@@ -312,11 +341,23 @@ class Trainer:
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
+            with torch.no_grad():  # the proximal L1 step on the per-frame twists (kinematic.frame_twists_shrink)
+                T = f.frame_twists
+                T.copy_(T.sign() * (T.abs() - kc.frame_twists_shrink * kc.lr_frame_twists).clamp_min(0.0))
+            if residual_opt is not None:
+                residual_opt.step()
+                residual_opt.zero_grad(set_to_none=True)
             rec = {"stage": "kinematic", "it": it + 1, "loss": float(loss.detach()), "window": window}
+            if joint is not None:
+                for meta, camera in metas:
+                    joint.observe(meta, camera)
+                rec.update(joint.step(it + 1))
             self.run.log(rec)
             self.stage_seconds["kinematic"] = time.monotonic() - t0
-            self._maybe_save("kinematic", it + 1, opt, force=it + 1 == kc.iterations)
+            self._maybe_save("kinematic", it + 1, optimizers, force=it + 1 == kc.iterations)
             self.progress("kinematic", it + 1, kc.iterations, rec)
+        if joint is not None:
+            joint.finish()
         m.keep_track()
         self._split_static()
         self.stage_seconds["kinematic"] = time.monotonic() - t0

@@ -23,8 +23,9 @@ from causalgs.errors import CausalGSError
 from causalgs.model.config import FitConfig
 from causalgs.model.fields import InversePhysics
 from causalgs.model.gaussians import Gaussians
-from causalgs.model.kinematic import blend, pattern_motion
+from causalgs.model.kinematic import blend, pattern_motion, quat_mul, rotvec_quat
 from causalgs.model.particles import Particles, TooManyParticles, build_particles
+from causalgs.model.residual import Residual, remove_rigid
 from causalgs.render.reference import quat_scale_to_cov
 from causalgs.sim.autograd import deformed_covariance, simulate
 from causalgs.sim.effects import WALL_BAND, Effects
@@ -35,11 +36,14 @@ from causalgs.store import ParticleStore
 
 @dataclass
 class State:
-    """Gaussians at one time: means [N, 3] and either quats [N, 4] (kinematic) or covs [N, 3, 3] (simulated)."""
+    """Gaussians at one time: means [N, 3] and either quats [N, 4] and optionally log-scales [N, 3] (tracked) or
+    covs [N, 3, 3] (simulated); ``offset``: the deformation residual's displacement of the dynamic rows, if any."""
 
     means: torch.Tensor
     quats: torch.Tensor | None = None
     covs: torch.Tensor | None = None
+    scales: torch.Tensor | None = None
+    offset: torch.Tensor | None = None
 
     def overrides(self) -> dict:
         out = {"means": self.means}
@@ -47,6 +51,8 @@ class State:
             out["covs"] = self.covs
         elif self.quats is not None:
             out["quats"] = self.quats
+            if self.scales is not None:
+                out["scales"] = self.scales
         return out
 
 
@@ -74,11 +80,15 @@ class CausalGS(torch.nn.Module):
         self.gaussians = gaussians
         self.fps = float(fps)
         self.train_frames = int(train_frames)  # frames 0..train_frames-1 are observed
-        self.fields = InversePhysics(config.fields, lo, hi, duration=(train_frames - 1) / fps)
+        window = dict(duration=(train_frames - 1) / fps, frames=train_frames)
+        self.fields = InversePhysics(config.fields, lo, hi, **window)
         # The kinematic fit of the observed frames, kept as it stood at the end of the kinematic stage: the physical
         # stage trains ``fields`` further (through the initial velocity), which may move its later frames.
-        self.tracked = InversePhysics(config.fields, lo, hi, duration=(train_frames - 1) / fps)
+        self.tracked = InversePhysics(config.fields, lo, hi, **window)
         self.tracked.requires_grad_(False)
+        rc = config.kinematic.residual
+        size = float(np.max(np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)))
+        self.residual = Residual(rc, config.fields.code_dim, window["duration"], size) if rc.enabled else None
         self.register_buffer("has_tracked", torch.zeros((), dtype=torch.bool))
         self.register_buffer("lo", torch.as_tensor(lo, dtype=torch.float64))
         self.register_buffer("hi", torch.as_tensor(hi, dtype=torch.float64))
@@ -130,6 +140,8 @@ class CausalGS(torch.nn.Module):
         if prefix + "log_stiffness" not in state_dict:  # saved before the stiffness calibration existed
             state_dict[prefix + "log_stiffness"] = torch.zeros((), dtype=torch.float64)
         state_dict.setdefault(prefix + "frame", torch.eye(4, dtype=torch.float64))  # saved before re-posing existed
+        if self.residual is not None and prefix + "residual.size" not in state_dict:  # saved before the residual
+            state_dict.update({prefix + "residual." + k: v for k, v in self.residual.state_dict().items()})
         if prefix + "has_tracked" not in state_dict:  # a model saved before the tracked copy existed
             for k in [k for k in state_dict if k.startswith(prefix + "fields.")]:
                 state_dict[prefix + "tracked." + k[len(prefix + "fields.") :]] = state_dict[k]
@@ -157,6 +169,8 @@ class CausalGS(torch.nn.Module):
         self.gaussians.reframe(sim)
         self.fields.reframe(sim)
         self.tracked.reframe(sim)
+        if self.residual is not None:
+            self.residual.reframe(sim)
         lo, hi = scene_bounds(self.gaussians.means.detach().double().numpy())
         with torch.no_grad():
             self.lo.copy_(torch.as_tensor(lo))
@@ -201,6 +215,31 @@ class CausalGS(torch.nn.Module):
     def kinematic_state(self, frame: int) -> State:
         means, quats = self.kinematic(int(frame), frames=[int(frame)])
         return State(means[0], quats[0])
+
+    def observed(self, frames, *, residual: bool = True) -> list[State]:
+        """The tracked state at ``frames``: the velocity field's (:meth:`kinematic`) plus, at observed frames, the
+        deformation residual (:mod:`causalgs.model.residual`; ``residual=False`` leaves it out). The model's best
+        reconstruction of what was seen: what interpolation renders and the kinematic stage trains."""
+        frames = [int(k) for k in frames]
+        means, quats = self.kinematic(max(frames), frames=frames)
+        inside = [i for i, k in enumerate(frames) if k < self.train_frames]
+        if self.residual is None or not residual or not inside:
+            return [State(means[i], quats[i]) for i in range(len(frames))]
+        g = self.gaussians
+        idx = torch.nonzero(self.dynamic).flatten()
+        f = self.kinematic_fields
+        z = f.code(g.means[idx].detach())
+        h = f.mixture(z)
+        out = [State(means[i], quats[i]) for i in range(len(frames))]
+        for i in inside:
+            d = self.residual(z, frames[i] / self.fps)
+            dx = remove_rigid(d.dx, means[i][idx].detach(), h).to(means.dtype)
+            m, q, s = means[i].clone(), quats[i].clone(), g.scales.clone()
+            m[idx] = m[idx] + dx
+            q[idx] = quat_mul(rotvec_quat(d.drot.to(q.dtype)), q[idx])
+            s[idx] = s[idx] + d.dlog_scale.to(s.dtype)
+            out[i] = State(m, q, scales=s, offset=dx)
+        return out
 
     # -- physical path ----------------------------------------------------------------------------------------------
     def simulator(self) -> Simulator:

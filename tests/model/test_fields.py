@@ -13,9 +13,9 @@ from causalgs.model.fields import FieldsConfig, InversePhysics, basis
 from causalgs.model.kinematic import integrate, quat_mul, rotvec_quat
 
 
-def _fields(**kw) -> InversePhysics:
+def _fields(frames: int = 11, **kw) -> InversePhysics:
     torch.manual_seed(0)
-    return InversePhysics(FieldsConfig(**kw), lo=(-1, -1, -1), hi=(1, 1, 1), duration=1.0).double()
+    return InversePhysics(FieldsConfig(**kw), lo=(-1, -1, -1), hi=(1, 1, 1), duration=1.0, frames=frames).double()
 
 
 def test_materials_stay_in_their_ranges_and_start_at_init():
@@ -192,3 +192,38 @@ def test_reframed_fields_describe_the_same_motion():
     assert torch.allclose(f.materials(y, h2)["E"], before["E"], rtol=1e-12)
     for t, v in zip((0.0, 0.4, 0.9), before["v"], strict=True):
         assert torch.allclose(f.velocity(y, t, h2), torch.as_tensor(sim.vectors(v.detach().numpy())), atol=1e-12)
+
+
+def test_frame_twists_add_one_twist_per_frame_interpolated_and_held_after_the_window():
+    """T(t): at a frame's time its own twist, linear between frames, the last one after the window; zero at the
+    start (the MLP alone); none when switched off."""
+    f = _fields(patterns=3)
+    t = torch.tensor([0.0, 0.1, 0.15, 0.95, 1.0, 1.7], dtype=torch.float64)
+    mlp_only = f.twists(t).detach()
+    with torch.no_grad():
+        f.frame_twists.normal_()
+    T = f.frame_twists.detach()
+    W = f.twists(t).detach() - mlp_only
+    assert torch.allclose(W[0], T[0]) and torch.allclose(W[1], T[1]) and torch.allclose(W[4], T[10])
+    assert torch.allclose(W[2], 0.5 * (T[1] + T[2])) and torch.allclose(W[3], 0.5 * (T[9] + T[10]))
+    assert torch.allclose(W[5], T[10])  # held after the window
+    assert len(_fields(frame_twists=False).frame_twists) == 0 and len(_fields(frames=0).frame_twists) == 0
+
+
+def test_frame_twists_gradcheck_float64():
+    """Twists through the model's own path against finite differences in the per-frame table (and time)."""
+    f = _fields(patterns=2, width=8, depth=1, pos_freqs=1, time_freqs=1, frames=5)
+
+    class Twists(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.f = f
+
+        def forward(self, t):
+            return self.f.twists(t)
+
+    T = torch.randn(5, 2, 6, dtype=torch.float64, requires_grad=True)
+    t = torch.tensor([0.0, 0.33, 0.6, 1.4], dtype=torch.float64)
+    model = Twists()
+    assert torch.autograd.gradcheck(lambda table: torch.func.functional_call(model, {"f.frame_twists": table}, (t,)),
+                                    (T,))  # fmt: skip
