@@ -214,20 +214,36 @@ def fit_(data_root, out_root, scenes, preset, lpips_nets, as_json, device):
         click.echo(fit_table(rows))
 
 
+# Table 1's two conventions: which PSNR and LPIPS each paper reports (SSIM: 11×11 Gaussian window, RGB, both)
+CONVENTIONS = {
+    "FreeGave": ("psnr", "lpips_vgg_unscaled", "PSNR: mean of per-image PSNR; LPIPS: VGG on the [0, 1] images "
+                 "unscaled, as FreeGave's metrics.py"),
+    "NVFi": ("psnr_pooled", "lpips_vgg", "PSNR: of the pooled MSE; LPIPS: VGG on images scaled to [-1, 1]"),
+}
+
+
 def fit_table(rows: list[dict]) -> str:
-    """A markdown table: PSNR / SSIM / LPIPS(alex, vgg) per scene, split and dynamics."""
-    lines = ["| scene | split | dynamics | PSNR | SSIM | LPIPS alex | LPIPS vgg | fit s |", "|---" * 8 + "|"]
+    """Markdown tables, one per convention (:data:`CONVENTIONS`): per scene and dynamics, interpolation and
+    extrapolation PSNR / SSIM / LPIPS and the fit's seconds; then :func:`recovery_table`."""
 
     def f(v, fmt):
         return "n/a" if v is None else format(v, fmt)
 
-    for r in rows:
-        for split in ("interpolation", "extrapolation"):
-            for dyn, m in r.get(split, {}).items():
-                lines.append(f"| {r['scene']} | {split} | {dyn} | {f(m['psnr'], '.2f')} | {f(m['ssim'], '.4f')} | "
-                             f"{f(m.get('lpips_alex'), '.4f')} | {f(m.get('lpips_vgg'), '.4f')} | "
-                             f"{f(r['fit_seconds'], '.0f')} |")  # fmt: skip
-    return "\n".join(lines) + "\n\n" + recovery_table(rows)
+    parts = []
+    for name, (pk, lk, what) in CONVENTIONS.items():
+        lines = [f"**{name}'s convention** ({what}; SSIM: mean per image, 11×11 Gaussian window, RGB)", "",
+                 "| scene | dynamics | interp. PSNR | SSIM | LPIPS | extrap. PSNR | SSIM | LPIPS | fit s |",
+                 "|---" * 9 + "|"]  # fmt: skip
+        for r in rows:
+            splits = [r.get("interpolation", {}), r.get("extrapolation", {})]
+            for dyn in dict.fromkeys([d for sp in splits for d in sp]):
+                cells = []
+                for sp in splits:
+                    m = sp.get(dyn) or {}
+                    cells += [f(m.get(pk), ".2f"), f(m.get("ssim"), ".4f"), f(m.get(lk), ".4f")]
+                lines.append(f"| {r['scene']} | {dyn} | {' | '.join(cells)} | {f(r['fit_seconds'], '.0f')} |")
+        parts.append("\n".join(lines))
+    return "\n\n".join(parts) + "\n\n" + recovery_table(rows)
 
 
 def recovery_table(rows: list[dict]) -> str:

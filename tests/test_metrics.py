@@ -133,6 +133,19 @@ def test_lpips_vgg_on_calibration_pairs():
     assert values["I03"] > 0.5 > 0.1 > values["I06"]  # alex: 0.72 and 0.05
 
 
+@needs_vgg
+def test_lpips_unscaled_feeds_the_images_as_they_are():
+    """FreeGave's convention: [0, 1] images into the network unscaled. ``normalize=False`` on x is the default
+    convention on (x + 1) / 2 (whose scaling to [-1, 1] gives x back), and differs from it on x."""
+    a, b = _pair("I04", np.float32)
+    raw = float(lpips(a, b, net="vgg", normalize=False))
+    assert raw == pytest.approx(float(lpips((a + 1) / 2, (b + 1) / 2, net="vgg")), rel=1e-5)
+    assert abs(raw - float(lpips(a, b, net="vgg"))) > 0.01
+    m = image_metrics([a], [b], lpips_nets=("vgg",))
+    assert m["lpips_vgg_unscaled"] == pytest.approx(raw, rel=1e-5) and "FreeGave" in m["conventions"]["freegave"] + \
+        m["conventions"]["lpips_vgg_unscaled"]
+
+
 @pytest.mark.slow
 @needs_vgg
 def test_lpips_vgg_orders_pairs_like_alex():
@@ -332,6 +345,7 @@ def test_image_metrics_report_is_json_and_consistent():
     assert m["ssim"] == pytest.approx((float(ssim(preds[0], gts[0])) + 1.0) / 2)
     assert m["lpips_alex"] == pytest.approx(float(lpips(preds[0], gts[0])) / 2, rel=1e-6)
     assert m["lpips_vgg"] is None and m["lpips_unavailable"] == {"lpips_vgg": "not requested"}
+    assert m["lpips_vgg_unscaled"] is None
     assert "11x11 Gaussian window sigma 1.5" in m["conventions"]["ssim"]
     assert "RGB" in m["conventions"]["images"]
     with pytest.raises(CausalGSError, match="unknown LPIPS network"):

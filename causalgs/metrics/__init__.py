@@ -57,6 +57,8 @@ def image_metrics(preds, gts, *, lpips_nets=("alex", "vgg")) -> dict:
 
     per: dict[str, list[float]] = {"psnr": [], "ssim": []}
     per.update({f"lpips_{net}": [] for net in NETS if lpips_state[net][0]})
+    if lpips_state["vgg"][0]:
+        per["lpips_vgg_unscaled"] = []
     mses = []
     with torch.no_grad():
         for i, (p, g) in enumerate(zip(preds, gts, strict=True)):
@@ -68,6 +70,9 @@ def image_metrics(preds, gts, *, lpips_nets=("alex", "vgg")) -> dict:
                 for net in NETS:
                     if lpips_state[net][0]:
                         per[f"lpips_{net}"].append(float(lpips(p64.float(), g64.float(), net=net)))
+                if lpips_state["vgg"][0]:
+                    per["lpips_vgg_unscaled"].append(float(lpips(p64.float(), g64.float(), net="vgg",
+                                                                 normalize=False)))  # fmt: skip
             except CausalGSError as e:
                 raise CausalGSError(f"image {i}: {e}") from None
             mses.append(mse)
@@ -83,6 +88,7 @@ def image_metrics(preds, gts, *, lpips_nets=("alex", "vgg")) -> dict:
     }
     for net in NETS:
         out[f"lpips_{net}"] = mean(per[f"lpips_{net}"]) if lpips_state[net][0] else None
+    out["lpips_vgg_unscaled"] = mean(per["lpips_vgg_unscaled"]) if lpips_state["vgg"][0] else None
     unavailable = {f"lpips_{net}": why for net, (ok, why) in lpips_state.items() if not ok}
     if unavailable:
         out["lpips_unavailable"] = unavailable
@@ -97,5 +103,8 @@ def image_metrics(preds, gts, *, lpips_nets=("alex", "vgg")) -> dict:
         "K2 0.03, 'valid' filtering (no padding), no downsampling, mean over images",
         "lpips": "v0.1 linear heads, inputs scaled to [-1, 1], mean over images; weights: "
         + "; ".join(f"{net}: {why}" for net, (ok, why) in lpips_state.items() if ok),
+        "lpips_vgg_unscaled": "LPIPS VGG on the [0, 1] images fed unscaled (as FreeGave's metrics.py computes it)",
+        "freegave": "psnr (mean of per-image PSNR), ssim, lpips_vgg_unscaled",
+        "nvfi": "psnr_pooled (PSNR of the pooled MSE), ssim, lpips_alex and lpips_vgg (inputs scaled to [-1, 1])",
     }
     return out

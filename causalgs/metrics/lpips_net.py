@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+from contextlib import contextmanager
 import pickle
 from pathlib import Path
 
@@ -239,12 +240,14 @@ def lpips_network(net: str = "alex", dtype: torch.dtype = torch.float32) -> LPIP
     return _NETS[key]
 
 
-def lpips(pred, gt, *, net: str = "alex", grad: bool = False) -> torch.Tensor:
+def lpips(pred, gt, *, net: str = "alex", grad: bool = False, normalize: bool = True) -> torch.Tensor:
     """LPIPS distance per image: ``[]`` for ``[H, W, 3]`` inputs, ``[B]`` for ``[B, H, W, 3]``; 0 for identical images.
 
-    Inputs in [0, 1] are mapped to [-1, 1] (lpips ``normalize=True``); the network runs in the inputs' dtype (float32
-    or float64, one cached network each). Evaluated under ``torch.no_grad`` unless ``grad=True`` (perceptual loss).
-    Raises :class:`~causalgs.errors.CausalGSError` when no weights are found (see :func:`lpips_available`).
+    Inputs in [0, 1] are mapped to [-1, 1] (lpips ``normalize=True``); ``normalize=False`` feeds them as they are, as
+    FreeGave's metrics.py does (its published LPIPS-VGG values are on that scale). The network runs in the inputs'
+    dtype (float32 or float64, one cached network each) on every core (:func:`cores`). Evaluated under
+    ``torch.no_grad`` unless ``grad=True`` (perceptual loss). Raises :class:`~causalgs.errors.CausalGSError` when no
+    weights are found (see :func:`lpips_available`).
     """
     single = getattr(pred, "ndim", 0) == 3
     p, g = image_pair(pred, gt)
@@ -252,6 +255,22 @@ def lpips(pred, gt, *, net: str = "alex", grad: bool = False) -> torch.Tensor:
     if min(h, w) < _MIN_SIZE:
         raise CausalGSError(f"LPIPS needs images of at least {_MIN_SIZE}×{_MIN_SIZE} pixels, got {h}×{w}")
     model = lpips_network(net, p.dtype).to(p.device)
-    with torch.set_grad_enabled(grad):
-        d = model(p.permute(0, 3, 1, 2) * 2 - 1, g.permute(0, 3, 1, 2) * 2 - 1)
+    a, b = p.permute(0, 3, 1, 2), g.permute(0, 3, 1, 2)
+    if normalize:
+        a, b = a * 2 - 1, b * 2 - 1
+    with torch.set_grad_enabled(grad), cores():
+        d = model(a, b)
     return d[0] if single else d
+
+
+@contextmanager
+def cores():
+    """torch on every core of this process for a while: a conv net is large work, unlike the training loop's small
+    ops (which run on ``$CAUSALGS_TORCH_THREADS``, one by default)."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(max(old, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else
+                              os.cpu_count() or 1))  # fmt: skip
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)

@@ -89,13 +89,20 @@ def test_bench_fit_tables_show_metrics_recovery_and_frame():
     from cli.bench import fit_table
 
     row = {"scene": "bounce", "fit_seconds": 600.0,
-           "extrapolation": {"mpm": {"psnr": 30.5, "ssim": 0.97, "lpips_alex": 0.05, "lpips_vgg": 0.1}},
+           "interpolation": {"mpm": {"psnr": 33.1, "psnr_pooled": 32.0, "ssim": 0.98, "lpips_vgg": 0.03,
+                                     "lpips_vgg_unscaled": 0.02}},
+           "extrapolation": {"mpm": {"psnr": 30.5, "psnr_pooled": 29.9, "ssim": 0.97, "lpips_alex": 0.05,
+                                     "lpips_vgg": 0.1, "lpips_vgg_unscaled": 0.07},
+                             "frozen": {"psnr": 25.0, "ssim": 0.9}},
            "recovery": {"objects": [{"name": "ball", "velocity_true_mean": [1.0, 0.0, 2.0],
                                      "velocity_error_relative": 0.12, "omega_true": [0.0, 4.0, 0.0],
                                      "omega_model": [0.1, 3.5, 0.0]}]},
            "frame": {"up_error_deg": 0.42, "gravity_ratio": 1.031}}  # fmt: skip
     text = fit_table([row, {"scene": "spin", "fit_seconds": None}])
-    assert "| bounce | extrapolation | mpm | 30.50 | 0.9700 | 0.0500 | 0.1000 | 600 |" in text
+    freegave, nvfi = text.split("**NVFi's convention**")
+    assert "| bounce | mpm | 33.10 | 0.9800 | 0.0200 | 30.50 | 0.9700 | 0.0700 | 600 |" in freegave
+    assert "| bounce | frozen | n/a | n/a | n/a | 25.00 | 0.9000 | n/a | 600 |" in freegave
+    assert "| bounce | mpm | 32.00 | 0.9800 | 0.0300 | 29.90 | 0.9700 | 0.1000 | 600 |" in nvfi
     ball = "| bounce | ball | (1.00, 0.00, 2.00) | 12% | (0.00, 4.00, 0.00) | (0.10, 3.50, 0.00) | 0.42° | 1.031 |"
     assert ball in text
     assert "| spin | n/a | n/a | n/a | n/a | n/a | n/a | n/a |" in text
