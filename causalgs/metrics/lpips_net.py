@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import importlib.util
 import os
-from contextlib import contextmanager
 import pickle
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np

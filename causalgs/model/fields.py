@@ -49,6 +49,9 @@ class FieldsConfig:
     depth: int = 2  # hidden layers of every MLP
     pos_freqs: int = 4  # frequencies of γ(p)
     frame_twists: bool = True  # T(t): a learned twist per observed frame on top of f_weight's
+    # "field": every particle's material from f_mat(γ(p)) + h·Θ; "global": one material for the whole scene (f_mat's
+    # last bias alone), the paper's ablation without inverse-physics inference of intrinsic properties (IPI)
+    materials: str = "field"
     time_freqs: int = 6  # frequencies of γ_t(t): the shortest period is 1/16 of the window (4 frames of 67), so a
     # bounce or an impact, which turns the velocity within a frame or two, is not smoothed over a dozen frames
     E_range: tuple[float, float] = (2.0e3, 4.0e5)  # Pa
@@ -68,6 +71,8 @@ class FieldsConfig:
             raise CausalGSError(f"nu_init = {self.nu_init} must lie in nu_range = {self.nu_range} within [0, 0.5)")
         if not 0 < self.density_range[0] <= self.density_range[1]:
             raise CausalGSError(f"density_range = {self.density_range} must be positive and ordered")
+        if self.materials not in ("field", "global"):
+            raise CausalGSError(f"fields.materials = {self.materials!r} must be 'field' or 'global'")
         if self.patterns < 1 or self.code_dim < 1 or self.width < 1 or self.depth < 0:
             raise CausalGSError("patterns, code_dim and width must be at least 1, depth at least 0")
 
@@ -201,9 +206,12 @@ class InversePhysics(nn.Module):
         """E, nu, density [N] from f_mat(γ(p)) + h·Θ (``h``: the particles' motion mixtures [N, K]; None leaves out
         the per-pattern offsets), each inside its configured range."""
         c = self.config
-        a = self.f_mat(self.enc(p))
-        if h is not None:
-            a = a + h.to(a.dtype) @ self.pattern_materials.to(a.dtype)
+        if c.materials == "global":
+            a = self.f_mat[-1].bias.to(p.dtype).expand(len(p), 3)
+        else:
+            a = self.f_mat(self.enc(p))
+            if h is not None:
+                a = a + h.to(a.dtype) @ self.pattern_materials.to(a.dtype)
         s = torch.sigmoid(a)
         logE0, logE1 = math.log(c.E_range[0]), math.log(c.E_range[1])
         return {

@@ -227,3 +227,19 @@ def test_frame_twists_gradcheck_float64():
     model = Twists()
     assert torch.autograd.gradcheck(lambda table: torch.func.functional_call(model, {"f.frame_twists": table}, (t,)),
                                     (T,))  # fmt: skip
+
+
+def test_a_global_material_is_one_material_for_every_particle_and_learns():
+    """``materials = "global"`` (the IPI ablation): every particle gets the same E, nu, density, whatever its place
+    or pattern, and its gradient reaches the one vector that holds it."""
+    f = _fields(materials="global", patterns=3)
+    with torch.no_grad():
+        for q in f.parameters():
+            q.add_(0.5 * torch.randn_like(q))
+    p = torch.rand(30, 3, dtype=torch.float64) * 2 - 1
+    m = f.materials(p, f.mixture(f.code(p)))
+    assert torch.allclose(m["E"], m["E"][0].expand(30), rtol=1e-14) and torch.allclose(m["nu"], m["nu"][0].expand(30))
+    m["E"].log().sum().backward()
+    assert float(f.f_mat[-1].bias.grad.abs().max()) > 0 and f.pattern_materials.grad is None
+    with pytest.raises(CausalGSError, match="materials"):
+        FieldsConfig(materials="per-body")

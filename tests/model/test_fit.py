@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -1369,3 +1370,21 @@ def test_a_reposed_scene_is_fitted_in_its_physics_frame(scene, fitted, tmp_path)
         evaluate(fitted, dynamics=("mpm",), lpips_nets=("alex",))  # fmt: skip
     assert abs(m["interpolation"]["mpm"]["psnr"] - original["interpolation"]["mpm"]["psnr"]) < 2.0
     assert m["recovery"]["objects"][0]["gaussians"] > 0
+
+
+def test_the_ablation_scores_a_finished_run_without_refitting_it(fitted, tmp_path):
+    """A finished run in the ablation's folder is scored, not refitted: the full model's forecast and, from the same
+    run, the kinematic-only one."""
+    import shutil
+
+    from causalgs.model.ablation import run_ablation
+
+    data = json.loads((fitted / "run.json").read_text())["data"]
+    shutil.copytree(fitted, tmp_path / "out" / "scene" / "full")
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "scene").symlink_to(Path(data).resolve(), target_is_directory=True)
+    before = (tmp_path / "out" / "scene" / "full" / "checkpoint.pt").stat().st_mtime_ns
+    rows = run_ablation(tmp_path / "data", tmp_path / "out", ["scene"], ["full", "no simulator"], lpips_nets=())
+    assert [r.row for r in rows] == ["full", "no simulator"]
+    assert all(np.isfinite(r.metrics["psnr"]) for r in rows) and rows[0].metrics != rows[1].metrics
+    assert (tmp_path / "out" / "scene" / "full" / "checkpoint.pt").stat().st_mtime_ns == before

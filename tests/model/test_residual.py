@@ -56,9 +56,8 @@ def test_trained_to_move_a_body_the_residual_cannot_but_it_can_bulge_it():
     h = torch.ones(len(x), 1, dtype=torch.float64)
     c = x.mean(0)
     cfg = ResidualConfig(max_offset=0.2, width=32, depth=2)
-    targets = {"rigid": 0.05 + 0.3 * torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand_as(x),
-                                                        x - c),  # fmt: skip
-               "bulge": 0.1 * (x - c)}
+    spin = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand_as(x)
+    targets = {"rigid": 0.05 + 0.3 * torch.linalg.cross(spin, x - c), "bulge": 0.1 * (x - c)}
     z = torch.cat([x, torch.sin(3 * x), torch.cos(3 * x)], dim=1)  # a code that tells the particles apart
     moved = {}
     for name, target in targets.items():
