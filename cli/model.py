@@ -198,14 +198,19 @@ def _check_run(run: Path) -> None:
 @click.argument("run", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--k", type=click.IntRange(min=1), help="Number of dynamic clusters.  [default: by silhouette score]")
 @click.option("--k-max", type=click.IntRange(min=2), default=6, show_default=True, help="Largest K tried.")
+@click.option("--masks/--no-masks", default=True, show_default=True,
+              help="Render the labels into masks/r_VVV_FFF.png for every test camera at --times frames and score them "
+                   "against the dataset's gt/masks: AP, PQ, F1, precision, recall, mIoU.")  # fmt: skip
+@click.option("--times", type=click.IntRange(min=1), default=10, show_default=True,
+              help="Evenly spaced frames of the video the masks are rendered at.")  # fmt: skip
 @seed_option
 @device_option
-def cluster(run, k, k_max, seed, device):
+def cluster(run, k, k_max, masks, times, seed, device):
     """Segment RUN into objects by learned physics: K-means on each dynamic Gaussian's physics code, log E and nu.
 
     Writes RUN/cluster/labels.npy (0 = static), clusters.ply (the Gaussians coloured by cluster, for any 3DGS viewer),
-    clusters.png (a dataset view of it) and cluster.json (sizes, median materials, and, with ground truth, the
-    Hungarian-matched accuracy and per-object IoU).
+    clusters.png (a dataset view of it), masks/ (label masks) and cluster.json (sizes, median materials, and, with
+    ground truth, the Hungarian-matched accuracy and per-object IoU, and the masks' segmentation scores).
     """
     from causalgs import _ti
     from causalgs.dataset import load_dataset
@@ -227,5 +232,17 @@ def cluster(run, k, k_max, seed, device):
     gt = report.get("ground_truth")
     if gt and gt.get("matched_accuracy") is not None:
         line += f"; matched accuracy vs true objects {100 * gt['matched_accuracy']:.1f}%"
+    if masks:
+        import numpy as np
+
+        from causalgs.io import write_json
+        from causalgs.model.segmentation import segment_run
+
+        report["segmentation"] = segment_run(run, np.load(run / "cluster" / "labels.npy"), times)
+        write_json(run / "cluster" / "cluster.json", report)
+        sc = report["segmentation"].get("scores")
+        if sc:
+            line += (f"; masks AP {sc['ap']:.3f} PQ {sc['pq']:.3f} F1 {sc['f1']:.3f} P {sc['precision']:.3f} "
+                     f"R {sc['recall']:.3f} mIoU {sc['miou']:.3f}")  # fmt: skip
     click.echo(line)
     click.echo(f"Wrote {run / 'cluster'}")

@@ -256,7 +256,7 @@ def test_a_checkpoint_of_another_model_is_a_one_line_error(fitted, tmp_path):
 def test_cluster_segments_by_learned_physics(fitted):
     from cli.main import cli
 
-    r = CliRunner().invoke(cli, ["cluster", str(fitted), "--k", "2"])
+    r = CliRunner().invoke(cli, ["cluster", str(fitted), "--k", "2", "--times", "3"])
     assert r.exit_code == 0, r.output
     rep = json.loads((fitted / "cluster" / "cluster.json").read_text())
     labels = np.load(fitted / "cluster" / "labels.npy")
@@ -267,6 +267,13 @@ def test_cluster_segments_by_learned_physics(fitted):
     gt = rep["ground_truth"]
     assert gt["gaussians_compared"] > 0 and 0 < gt["matched_accuracy"] <= 1
     assert (fitted / "cluster" / "clusters.ply").is_file() and (fitted / "cluster" / "clusters.png").is_file()
+    seg = rep["segmentation"]  # label masks of every test camera at 3 frames, scored against gt/masks
+    assert len(seg["frames"]) == 3 and seg["frames"][0] == 0
+    assert len(list((fitted / "cluster" / "masks").glob("r_*.png"))) == 3 * len(seg["views"])
+    sc = seg["scores"]
+    assert sc["images"] == 3 * len(seg["views"]) and sc["true_instances"] > 0
+    assert all(0.0 <= sc[k] <= 1.0 for k in ("ap", "pq", "f1", "precision", "recall", "miou"))
+    assert "mIoU" in r.output
 
 
 def test_kmeans_and_silhouette_find_separated_groups():
