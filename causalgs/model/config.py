@@ -43,6 +43,7 @@ class KinematicConfig:
     window_power: float = 2.0  # the window grows as (iteration / ramp)^power: slowly over the first frames
     views_per_iter: int = 2  # images rendered (and averaged in the loss) per iteration
     newest_frames: int = 3  # every other image is drawn from this many newest frames of the window (0: uniform)
+    focus: float = 0.0  # the other images drawn ∝ (frame's recent loss)^focus: more where tracking is worst (0: off)
     blur: tuple[float, ...] = (0.02, 0.05, 0.12)  # σ of the blurred loss terms, as fractions of the image size
     # Weight of the mean twist size |u_k| + reach·|ω_k| over patterns and window frames (m/s): a body is at rest
     # unless the images say otherwise, so a body that has landed stops rather than drifting at the window's end.

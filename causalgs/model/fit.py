@@ -178,21 +178,33 @@ class Trainer:
         self.stage_seconds: dict[str, float] = {}
         self.forecast_choice: dict | None = None  # the assimilation stage's scores of the forecast's starts
         self.calibration: dict | None = None  # the stiffness calibration's scores and factor
+        self.frame_loss: dict[int, float] = {}  # a running mean of each frame's tracking loss (kinematic.focus)
         self._last_save = time.monotonic()
 
     # -- shared -----------------------------------------------------------------------------------------------------
     def _gt(self, frame: Frame) -> torch.Tensor:
         return torch.from_numpy(frame.image).to(_ti.torch_dtype())
 
-    def _sample(self, window: int, count: int, lowest: int = 0, newest: int = 0) -> list[tuple[int, Frame]]:
+    def _sample(self, window: int, count: int, lowest: int = 0, newest: int = 0,
+                focus: float = 0.0) -> list[tuple[int, Frame]]:  # fmt: skip
         """``count`` training images of frames in [lowest, window); with ``newest`` > 0 every other one is drawn from
-        the newest ``newest`` frames of the window (where the curriculum has just extended it)."""
+        the newest ``newest`` frames of the window (where the curriculum has just extended it). With ``focus`` > 0
+        the others are drawn with a probability ∝ (the frame's recent loss)^focus (:attr:`frame_loss`; a frame not
+        yet seen counts as the worst): the fit spends its images where it tracks worst."""
         keys = [k for k in self.train if lowest <= k < window]
         front = [k for k in keys if k >= window - newest] if newest > 0 else []
+        weights = None
+        if focus > 0 and self.frame_loss:
+            worst = max(self.frame_loss.values())
+            w = np.array([self.frame_loss.get(k, worst) for k in keys]) ** focus
+            weights = w / w.sum()
         out = []
         for i in range(count):
             pool = front if front and i % 2 == 0 else keys
-            k = pool[int(self.rng.integers(len(pool)))]
+            if pool is keys and weights is not None:
+                k = keys[int(self.rng.choice(len(keys), p=weights))]
+            else:
+                k = pool[int(self.rng.integers(len(pool)))]
             frames = self.train[k]
             out.append((k, frames[int(self.rng.integers(len(frames)))]))
         return out
@@ -325,13 +337,16 @@ class Trainer:
             optimizers.load_state_dict(opt_state)
         for it in range(start, kc.iterations):
             window = self._window(it, kc.iterations, kc.window_start, kc.window_ramp, kc.window_power)
-            picks = self._sample(window, kc.views_per_iter, newest=kc.newest_frames)
+            picks = self._sample(window, kc.views_per_iter, newest=kc.newest_frames, focus=kc.focus)
             states = m.observed([k for k, _ in picks], residual=it >= residual_from)
             loss, metas = 0.0, []
             for state, (_, frame) in zip(states, picks, strict=True):
                 img, _, meta = m.gaussians.render(frame.camera, self.bg, **state.overrides())
                 metas.append((meta, frame.camera))
-                loss = loss + tracking_loss(img, self._gt(frame), kc.lambda_dssim, kc.blur) / len(picks)
+                term = tracking_loss(img, self._gt(frame), kc.lambda_dssim, kc.blur)
+                k = self.timeline.index(frame)
+                self.frame_loss[k] = 0.7 * self.frame_loss.get(k, float(term)) + 0.3 * float(term)
+                loss = loss + term / len(picks)
                 if state.offset is not None and rc.lambda_size > 0:  # the smallest residual that explains the images
                     loss = loss + rc.lambda_size * (state.offset / m.residual.bound()).square().mean() / len(picks)
             if kc.lambda_rest > 0:  # bodies at rest unless the images say otherwise: L1 on the patterns' twists
