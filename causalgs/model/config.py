@@ -32,7 +32,10 @@ class KinematicConfig:
 
     iterations: int = 1500
     lr: float = 2e-3  # Adam, f_vel / f_neck / f_weight
-    lr_centres: float = 1e-3  # the pattern centres (metres)
+    # The pattern centres: 0 puts each at its pattern's mass centre every iteration (a spin then turns a body in
+    # place; learned centres had drifted half the scene from the ball they turn, and its spin stayed 8x too slow);
+    # > 0 learns them at this Adam rate (metres per step).
+    lr_centres: float = 0.0
     lr_frame_twists: float = 0.02  # the per-frame twists T (m/s and rad/s per step; causalgs.model.fields)
     # After each Adam step the per-frame twists shrink towards zero by this share of a step (the proximal step of an
     # L1 penalty): a twist that the images do not push the same way step after step stays at zero. Adam moves every

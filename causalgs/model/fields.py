@@ -168,11 +168,15 @@ class InversePhysics(nn.Module):
         self.duration = max(float(duration), 1e-6)
         g = torch.Generator().manual_seed(0)
         self.centres = nn.Parameter(centre + (torch.rand(c.patterns, 3, generator=g) - 0.5) * half)
+        # Every pattern turns about a centre that it carries along (causalgs.model.kinematic.pattern_motion): then u_k
+        # is the velocity of the body's centre and ω_k its spin. Models saved before hold fixed centres (False).
+        self.register_buffer("moving_centres", torch.tensor(True))
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         if prefix + "f_mat.0.weight" in state_dict and prefix + "pattern_materials" not in state_dict:
             state_dict[prefix + "pattern_materials"] = torch.zeros_like(self.pattern_materials)  # an older model
         state_dict.setdefault(prefix + "frame_twists", torch.zeros_like(self.frame_twists))  # saved before T existed
+        state_dict.setdefault(prefix + "moving_centres", torch.tensor(False))  # saved when centres stood still
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def reframe(self, sim) -> None:
@@ -234,11 +238,24 @@ class InversePhysics(nn.Module):
         T = self.frame_twists.to(W.dtype)
         return W + (1.0 - w) * T[i] + w * T[i + 1]
 
-    def affine(self, h: torch.Tensor, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per-particle velocity field at times t: v_i(x, t) = a[t, i] + ω[t, i] × x. Returns a, ω [T, N, 3]."""
+    def place_centres(self, x: torch.Tensor, h: torch.Tensor, least: float = 1e-3) -> None:
+        """Put every pattern's centre at the h-weighted mean of the canonical positions ``x`` [N, 3] (``h`` [N, K]):
+        a body turns about its centre of mass, so a spin does not move it. Patterns with less than ``least`` of a
+        particle's weight keep their centre."""
+        with torch.no_grad():
+            w = h.detach().to(self.centres.dtype)
+            mass = w.sum(0)
+            com = (w.T @ x.detach().to(w.dtype)) / mass.clamp_min(1e-12)[:, None]
+            self.centres.copy_(torch.where((mass > least)[:, None], com, self.centres))
+
+    def affine(self, h: torch.Tensor, t: torch.Tensor, centres: torch.Tensor | None = None):
+        """Per-particle velocity field at times t: v_i(x, t) = a[t, i] + ω[t, i] × x. Returns a, ω [T, N, 3].
+        ``centres`` [K, 3] or [T, K, 3]: where the patterns' centres are at those times (default: where they start,
+        exact at t = 0 and for fixed centres)."""
         W = self.twists(t)
         u, w = W[..., :3], W[..., 3:]
-        a_k = u - torch.linalg.cross(w, self.centres.expand_as(w))  # u_k − ω_k × c_k
+        c = self.centres if centres is None else centres.to(w.dtype)
+        a_k = u - torch.linalg.cross(w, c.expand_as(w))  # u_k − ω_k × c_k
         return torch.einsum("nk,tkd->tnd", h, a_k), torch.einsum("nk,tkd->tnd", h, w)
 
     def velocity(self, p: torch.Tensor, t: float, h: torch.Tensor | None = None) -> torch.Tensor:

@@ -338,6 +338,9 @@ class Trainer:
         for it in range(start, kc.iterations):
             window = self._window(it, kc.iterations, kc.window_start, kc.window_ramp, kc.window_power)
             picks = self._sample(window, kc.views_per_iter, newest=kc.newest_frames, focus=kc.focus)
+            if kc.lr_centres == 0:  # the patterns turn about their mass centres as the mixtures stand now
+                x0 = m.gaussians.means.detach()[m.dynamic]
+                f.place_centres(x0, f.mixture(f.code(x0)))
             states = m.observed([k for k, _ in picks], residual=it >= residual_from)
             loss, metas = 0.0, []
             for state, (_, frame) in zip(states, picks, strict=True):

@@ -63,16 +63,27 @@ def integrate(
     n_steps = int(steps) * m
     # Twists at every midpoint and step start, computed in one batched call: the network is a function of t only.
     t_start = torch.arange(n_steps, dtype=torch.float64) * dts
-    a, w = fields.affine(h, torch.cat([t_start, t_start + 0.5 * dts]).to(x0.dtype))
-    a0, w0, am, wm = a[:n_steps], w[:n_steps], a[n_steps:], w[n_steps:]
+    W = fields.twists(torch.cat([t_start, t_start + 0.5 * dts]).to(x0.dtype)).to(x0.dtype)
+    u, w = W[..., :3], W[..., 3:]
+    c = fields.centres.to(x0.dtype)
+    moving = bool(fields.moving_centres)
     xs, qs = [x0], ([q0 / q0.norm(dim=-1, keepdim=True)] if q0 is not None else None)
     x, q = x0, qs[0] if qs is not None else None
+
+    def velocity(i, y, centres):  # v_i = Σ_k h_ik (u_k + ω_k × (y − c_k)) at twist row i
+        a = torch.einsum("nk,kd->nd", h, u[i] - torch.linalg.cross(w[i], centres))
+        return a + torch.linalg.cross(h @ w[i], y)
+
     for k in range(n_steps):
-        k1 = a0[k] + torch.linalg.cross(w0[k], x)
-        xm = x + 0.5 * dts * k1
-        x = x + dts * (am[k] + torch.linalg.cross(wm[k], xm))
+        i0, im = k, n_steps + k
+        xm = x + 0.5 * dts * velocity(i0, x, c)
+        c_mid = c + 0.5 * dts * u[i0] if moving else c  # a centre is a point of its pattern: it moves with u_k
+        x = x + dts * velocity(im, xm, c_mid)
+        if moving:
+            c = c + dts * u[im]
+        wm = h @ w[im]
         if q is not None:
-            q = quat_mul(rotvec_quat(wm[k] * dts), q)
+            q = quat_mul(rotvec_quat(wm * dts), q)
         if (k + 1) % m == 0:
             xs.append(x)
             if qs is not None:
@@ -90,6 +101,10 @@ def skew(w: torch.Tensor) -> torch.Tensor:
 def pattern_motion(fields: InversePhysics, steps: int, dt: float, substeps: int = 1):
     """The rigid motion of every pattern, integrated by the same RK2 midpoint rule: x(t) = R_k(t) x(0) + t_k(t).
 
+    Pattern k's twist (u_k, ω_k) turns it about its centre c_k. With ``fields.moving_centres`` the centre is a point
+    of the pattern, carried along (c_k(t) = R_k c_k(0) + t_k: u_k is the velocity of the body's centre and ω_k its
+    spin, whatever the body's path); otherwise it stays where it is in space.
+
     For the affine field v = a + ω × x one RK2 step is an affine map of x, so stepping the map (R, t) is exactly
     stepping every point; a particle that belongs to one pattern moves precisely as :func:`integrate` moves it.
     Returns R [steps + 1, K, 3, 3], t [steps + 1, K, 3] and the patterns' rotations q [steps + 1, K, 4] (wxyz)."""
@@ -99,8 +114,9 @@ def pattern_motion(fields: InversePhysics, steps: int, dt: float, substeps: int 
     t_start = torch.arange(n, dtype=torch.float64) * dts
     W = fields.twists(torch.cat([t_start, t_start + 0.5 * dts]).to(fields.centres.dtype))
     u, w = W[..., :3], W[..., 3:]
-    a = u - torch.linalg.cross(w, fields.centres.expand_as(w))
-    a0, w0, am, wm = a[:n], w[:n], a[n:], w[n:]
+    c0 = fields.centres
+    moving = bool(fields.moving_centres)
+    u0, w0, um, wm = u[:n], w[:n], u[n:], w[n:]
     S0, Sm = skew(w0), skew(wm)
     K = fields.config.patterns
     dtype = fields.centres.dtype
@@ -108,11 +124,17 @@ def pattern_motion(fields: InversePhysics, steps: int, dt: float, substeps: int 
     tr = torch.zeros(K, 3, dtype=dtype)
     q = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dtype).expand(K, 4)
     Rs, ts, qs = [R], [tr], [q]
+
+    def offset(u_k, w_k, R_, t_):  # a_k = u_k − ω_k × c_k, the centre where the pattern has carried it (or fixed)
+        c = (R_ @ c0[..., None])[..., 0] + t_ if moving else c0
+        return u_k - torch.linalg.cross(w_k, c)
+
     for k in range(n):
         R_mid = R + 0.5 * dts * S0[k] @ R
-        t_mid = tr + 0.5 * dts * (a0[k] + (S0[k] @ tr[..., None])[..., 0])
+        t_mid = tr + 0.5 * dts * (offset(u0[k], w0[k], R, tr) + (S0[k] @ tr[..., None])[..., 0])
+        am = offset(um[k], wm[k], R_mid, t_mid)
         R = R + dts * Sm[k] @ R_mid
-        tr = tr + dts * (am[k] + (Sm[k] @ t_mid[..., None])[..., 0])
+        tr = tr + dts * (am + (Sm[k] @ t_mid[..., None])[..., 0])
         q = quat_mul(rotvec_quat(wm[k] * dts), q)
         if (k + 1) % m == 0:
             Rs.append(R)

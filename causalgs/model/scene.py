@@ -469,7 +469,9 @@ class CausalGS(torch.nn.Module):
                 xs, _ = self.trajectories(self.mixtures(x0), x0, None, k, ks)
                 v = _resting(xs, self.fps)
             else:
-                a, w = f.affine(self.mixtures(x0), torch.tensor([k / self.fps], dtype=x0.dtype))
+                R, t, _ = pattern_motion(f, k, 1.0 / self.fps, self.config.kinematic.substeps)
+                c = (R[k] @ f.centres[..., None])[..., 0] + t[k] if bool(f.moving_centres) else f.centres
+                a, w = f.affine(self.mixtures(x0), torch.tensor([k / self.fps], dtype=x0.dtype), c)
                 v = a[0] + torch.linalg.cross(w[0], x)
         dx = self.cell
         band = WALL_BAND * dx

@@ -243,3 +243,31 @@ def test_a_global_material_is_one_material_for_every_particle_and_learns():
     assert float(f.f_mat[-1].bias.grad.abs().max()) > 0 and f.pattern_materials.grad is None
     with pytest.raises(CausalGSError, match="materials"):
         FieldsConfig(materials="per-body")
+
+
+def test_a_pattern_turns_about_the_centre_it_carries():
+    """With moving centres (the default) u_k is the velocity of the pattern's centre and ω_k its spin: a body whose
+    centre is its mass centre travels in a straight line while it turns, whatever the spin; with a fixed centre the
+    same twist swings it around a point in space."""
+    from causalgs.model.kinematic import pattern_motion
+
+    f = _fields(patterns=1, frames=0)
+    with torch.no_grad():
+        f.f_weight[-1].weight.zero_()
+        f.f_weight[-1].bias.copy_(torch.tensor([0.5, 0.0, 0.2, 0.0, 3.0, 1.0], dtype=torch.float64))
+    x0 = torch.rand(50, 3, dtype=torch.float64) * 0.2 + torch.tensor([0.4, -0.3, 0.1], dtype=torch.float64)
+    h = torch.ones(50, 1, dtype=torch.float64)
+    f.place_centres(x0, h)
+    assert torch.allclose(f.centres[0], x0.mean(0))
+    xs, _ = integrate(f, h, x0, None, 20, 0.05, substeps=2)
+    t = torch.arange(21, dtype=torch.float64)[:, None] * 0.05
+    path = x0.mean(0) + t * torch.tensor([0.5, 0.0, 0.2], dtype=torch.float64)
+    assert float((xs.mean(1) - path).norm(dim=-1).max()) < 1e-12  # the mass centre moves with u exactly
+    spread = (xs - xs.mean(1, keepdim=True)).norm(dim=-1)
+    assert torch.allclose(spread, spread[:1].expand_as(spread), atol=1e-3)  # and the body only turns about it
+    R, tr, _ = pattern_motion(f, 20, 0.05, 2)
+    assert torch.allclose((R[:, 0] @ x0.T).transpose(1, 2) + tr[:, 0, None], xs, atol=1e-12)
+    with torch.no_grad():
+        f.moving_centres.fill_(False)
+    fixed, _ = integrate(f, h, x0, None, 20, 0.05, substeps=2)
+    assert float((fixed.mean(1) - path).norm(dim=-1).max()) > 0.05
