@@ -348,7 +348,8 @@ class Trainer:
                 metas.append((meta, frame.camera))
                 term = tracking_loss(img, self._gt(frame), kc.lambda_dssim, kc.blur)
                 k = self.timeline.index(frame)
-                self.frame_loss[k] = 0.7 * self.frame_loss.get(k, float(term)) + 0.3 * float(term)
+                value = float(term.detach())
+                self.frame_loss[k] = 0.7 * self.frame_loss.get(k, value) + 0.3 * value
                 loss = loss + term / len(picks)
                 if state.offset is not None and rc.lambda_size > 0:  # the smallest residual that explains the images
                     loss = loss + rc.lambda_size * (state.offset / m.residual.bound()).square().mean() / len(picks)
