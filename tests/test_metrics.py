@@ -133,6 +133,23 @@ def test_lpips_vgg_on_calibration_pairs():
     assert values["I03"] > 0.5 > 0.1 > values["I06"]  # alex: 0.72 and 0.05
 
 
+@needs_alex
+def test_many_predictions_of_one_truth_score_as_each_alone():
+    """image_metrics_many computes each true image's LPIPS features once and scores every prediction against them:
+    the same numbers as image_metrics of each prediction on its own."""
+    from causalgs.metrics import image_metrics_many
+
+    gts = list(_random_images(3, 40, 36, 21, torch.float32))
+    preds = {name: [(g + s * _random_images(1, 40, 36, 30 + i, torch.float32)[0]).clamp(0, 1) for i, g in
+                    enumerate(gts)] for name, s in (("a", 0.03), ("b", 0.1))}  # fmt: skip
+    many = image_metrics_many(preds, gts, lpips_nets=("alex",))
+    for name, images in preds.items():
+        alone = image_metrics(images, gts, lpips_nets=("alex",))
+        for key in ("psnr", "psnr_pooled", "ssim", "lpips_alex"):
+            assert many[name][key] == pytest.approx(alone[key], rel=1e-6), (name, key)
+    assert many["a"]["lpips_alex"] < many["b"]["lpips_alex"]
+
+
 @needs_vgg
 def test_lpips_unscaled_feeds_the_images_as_they_are():
     """FreeGave's convention: [0, 1] images into the network unscaled. ``normalize=False`` on x is the default

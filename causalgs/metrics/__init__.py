@@ -14,7 +14,7 @@ import math
 import torch
 
 from causalgs.errors import CausalGSError
-from causalgs.metrics.lpips_net import NETS, lpips, lpips_available, lpips_network
+from causalgs.metrics.lpips_net import NETS, lpips, lpips_available, lpips_between, lpips_embedding, lpips_network
 from causalgs.metrics.pixel import CHANNELS, SSIM_SIGMA, SSIM_WINDOW, _mse, _pairs, psnr, psnr_pooled, ssim, ssim_map
 
 __all__ = [
@@ -45,39 +45,50 @@ def image_metrics(preds, gts, *, lpips_nets=("alex", "vgg")) -> dict:
     ``preds``, ``gts``: sequences of ``[H, W, 3]`` float images (tensors or arrays) in [0, 1], or ``[B, H, W, 3]``
     batches. Keys: ``psnr`` (mean of per-image PSNR), ``psnr_pooled`` (PSNR of the mean per-image MSE), ``ssim``
     (mean of per-image SSIM), ``lpips_alex`` and ``lpips_vgg`` (mean of per-image LPIPS, ``None`` when the weights are
-    missing or the net was not asked for; ``lpips_unavailable`` then says why), ``n_images``, ``per_image`` (the
-    per-image values) and ``conventions``. PSNR and SSIM are computed in float64, LPIPS in float32.
+    missing or the net was not asked for; ``lpips_unavailable`` then says why), ``lpips_vgg_unscaled`` (FreeGave's
+    convention), ``n_images``, ``per_image`` (the per-image values) and ``conventions``. PSNR and SSIM are computed in
+    float64, LPIPS in float32.
     """
-    preds, gts = _pairs(preds, gts)
+    return image_metrics_many({"": preds}, gts, lpips_nets=lpips_nets)[""]
+
+
+# LPIPS variants scored: (key, net, inputs scaled to [-1, 1])
+_LPIPS_KEYS = (("lpips_alex", "alex", True), ("lpips_vgg", "vgg", True), ("lpips_vgg_unscaled", "vgg", False))
+
+
+def image_metrics_many(preds: dict, gts, *, lpips_nets=("alex", "vgg")) -> dict:
+    """:func:`image_metrics` of several predictions of the same ground truth (``preds``: name → images), each
+    ground-truth image's LPIPS features computed once for all of them."""
     nets = tuple(lpips_nets)
     for net in nets:
         if net not in NETS:
             raise CausalGSError(f"unknown LPIPS network {net!r} (expected one of {', '.join(NETS)})")
+    pairs = {name: _pairs(images, gts) for name, images in preds.items()}
+    gts = next(iter(pairs.values()))[1] if pairs else []
     lpips_state = {net: lpips_available(net) if net in nets else (False, "not requested") for net in NETS}
-
-    per: dict[str, list[float]] = {"psnr": [], "ssim": []}
-    per.update({f"lpips_{net}": [] for net in NETS if lpips_state[net][0]})
-    if lpips_state["vgg"][0]:
-        per["lpips_vgg_unscaled"] = []
-    mses = []
+    scored = [(key, net, norm) for key, net, norm in _LPIPS_KEYS if lpips_state[net][0]]
+    per = {name: {"psnr": [], "ssim": [], **{key: [] for key, _, _ in scored}} for name in pairs}
+    mses: dict[str, list[float]] = {name: [] for name in pairs}
     with torch.no_grad():
-        for i, (p, g) in enumerate(zip(preds, gts, strict=True)):
+        for i, g in enumerate(gts):
             try:
-                mse = float(_mse(p, g, "rgb", 1.0)[0][0])
-                p64 = torch.as_tensor(p).to(torch.float64)
                 g64 = torch.as_tensor(g).to(torch.float64)
-                per["ssim"].append(float(ssim(p64, g64)))
-                for net in NETS:
-                    if lpips_state[net][0]:
-                        per[f"lpips_{net}"].append(float(lpips(p64.float(), g64.float(), net=net)))
-                if lpips_state["vgg"][0]:
-                    per["lpips_vgg_unscaled"].append(float(lpips(p64.float(), g64.float(), net="vgg",
-                                                                 normalize=False)))  # fmt: skip
+                truth = {key: lpips_embedding(g64.float(), net=net, normalize=norm) for key, net, norm in scored}
+                for name, (ps, _) in pairs.items():
+                    p64 = torch.as_tensor(ps[i]).to(torch.float64)
+                    mse = float(_mse(p64, g64, "rgb", 1.0)[0][0])
+                    mses[name].append(mse)
+                    per[name]["psnr"].append(_psnr_db(mse))
+                    per[name]["ssim"].append(float(ssim(p64, g64)))
+                    for key, net, norm in scored:
+                        e = lpips_embedding(p64.float(), net=net, normalize=norm)
+                        per[name][key].append(lpips_between(e, truth[key], net=net))
             except CausalGSError as e:
                 raise CausalGSError(f"image {i}: {e}") from None
-            mses.append(mse)
-            per["psnr"].append(_psnr_db(mse))
+    return {name: _report(per[name], mses[name], lpips_state) for name in pairs}
 
+
+def _report(per: dict[str, list[float]], mses: list[float], lpips_state: dict) -> dict:
     def mean(values: list[float]) -> float:
         return math.fsum(values) / len(values)
 
@@ -92,7 +103,7 @@ def image_metrics(preds, gts, *, lpips_nets=("alex", "vgg")) -> dict:
     unavailable = {f"lpips_{net}": why for net, (ok, why) in lpips_state.items() if not ok}
     if unavailable:
         out["lpips_unavailable"] = unavailable
-    out["n_images"] = len(preds)
+    out["n_images"] = len(mses)
     out["per_image"] = per
     out["conventions"] = {
         "images": "RGB, float values in [0, 1] (data range 1.0)",

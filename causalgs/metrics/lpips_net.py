@@ -90,18 +90,25 @@ class LPIPSNet(nn.Module):
                 out.append(x)
         return out
 
+    def embed(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """The tapped features of ``x`` [B, 3, H, W] in [-1, 1], each of unit length along its channels
+        (lpips.normalize_tensor, eps 1e-10 added to the norm)."""
+        feats = self._taps((x - self.shift) / self.scale)
+        return [f / (torch.sqrt((f * f).sum(dim=1, keepdim=True)) + 1e-10) for f in feats]
+
+    def compare(self, e0: list[torch.Tensor], e1: list[torch.Tensor]) -> torch.Tensor:
+        """The distance [B] between two embeddings: squared difference, learned channel weights, mean over the
+        image, summed over the taps."""
+        total = e0[0].new_zeros(e0[0].shape[0])
+        for f0, f1, lin in zip(e0, e1, self.lins, strict=True):
+            total = total + lin((f0 - f1) ** 2).mean(dim=(1, 2, 3))
+        return total
+
     def forward(self, x0: torch.Tensor, x1: torch.Tensor) -> torch.Tensor:
         """``x0``, ``x1``: ``[B, 3, H, W]`` in [-1, 1] → ``[B]``."""
         b = x0.shape[0]
-        feats = self._taps((torch.cat([x0, x1]) - self.shift) / self.scale)
-        total = x0.new_zeros(b)
-        for f, lin in zip(feats, self.lins, strict=True):
-            # Unit length along channels (lpips.normalize_tensor, eps 1e-10 added to the norm), squared difference,
-            # learned channel weights, mean over the image.
-            f = f / (torch.sqrt((f * f).sum(dim=1, keepdim=True)) + 1e-10)
-            d = (f[:b] - f[b:]) ** 2
-            total = total + lin(d).mean(dim=(1, 2, 3))
-        return total
+        e = self.embed(torch.cat([x0, x1]))
+        return self.compare([f[:b] for f in e], [f[b:] for f in e])
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -261,6 +268,25 @@ def lpips(pred, gt, *, net: str = "alex", grad: bool = False, normalize: bool = 
     with torch.set_grad_enabled(grad), cores():
         d = model(a, b)
     return d[0] if single else d
+
+
+def lpips_embedding(image, *, net: str = "alex", normalize: bool = True) -> list[torch.Tensor]:
+    """The LPIPS features of one image [H, W, 3] in [0, 1] (scaled to [-1, 1] unless ``normalize=False``), to
+    compare with :func:`lpips_between` against many others without recomputing them."""
+    x, _ = image_pair(image, image)
+    if min(x.shape[1:3]) < _MIN_SIZE:
+        h, w = x.shape[1:3]
+        raise CausalGSError(f"LPIPS needs images of at least {_MIN_SIZE}×{_MIN_SIZE} pixels, got {h}×{w}")
+    model = lpips_network(net, x.dtype).to(x.device)
+    x = x.permute(0, 3, 1, 2)
+    with torch.no_grad(), cores():
+        return model.embed(x * 2 - 1 if normalize else x)
+
+
+def lpips_between(e0: list[torch.Tensor], e1: list[torch.Tensor], *, net: str = "alex") -> float:
+    """LPIPS between two images' :func:`lpips_embedding` (same net, convention and dtype)."""
+    with torch.no_grad():
+        return float(lpips_network(net, e0[0].dtype).compare(e0, e1)[0])
 
 
 @contextmanager

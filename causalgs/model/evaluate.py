@@ -29,7 +29,7 @@ import torch
 from causalgs.dataset import Frame
 from causalgs.errors import CausalGSError
 from causalgs.io import read_json, write_image, write_json
-from causalgs.metrics import image_metrics
+from causalgs.metrics import image_metrics, image_metrics_many
 from causalgs.model.fit import load_model
 from causalgs.model.recovery import frame_report, recovery_report
 from causalgs.model.scene import CausalGS, State
@@ -98,18 +98,24 @@ def evaluate(run_dir, *, dynamics=EVAL_DYNAMICS, lpips_nets=("alex", "vgg"), pro
         old = read_json(previous, "metrics")
         for key in result:
             result[key].update({d: v for d, v in old.get(key, {}).items() if d not in dynamics})
+    # Every dynamics is rendered first and scored together: each true image's LPIPS features are computed once.
+    preds: dict[str, dict[str, list]] = {"val": {}, "test": {}}
+    data = None
     for dyn in dynamics:
         model, data, tl = _model_for(run_dir, dyn)
         if dyn in ("mpm", "mpm-open") and model.particles is None:
             continue
-        bg = data.background
-        for split, key in (("val", "interpolation"), ("test", "extrapolation")):
+        for split in preds:
             frames = data.splits[split]
-            if not frames or (split == "val" and dyn == "frozen"):  # frozen = kinematic-only inside
-                continue
-            preds = render_images(model, tl, frames, dyn, bg)
-            result[key][dyn] = image_metrics(preds, [f.image for f in frames], lpips_nets=lpips_nets)
-            result[key][dyn]["images"] = len(frames)
+            if frames and not (split == "val" and dyn == "frozen"):  # frozen = kinematic-only inside
+                preds[split][dyn] = render_images(model, tl, frames, dyn, data.background)
+    for split, key in (("val", "interpolation"), ("test", "extrapolation")):
+        if not preds[split]:
+            continue
+        frames = data.splits[split]
+        scores = image_metrics_many(preds[split], [f.image for f in frames], lpips_nets=lpips_nets)
+        for dyn, m in scores.items():
+            result[key][dyn] = {**m, "images": len(frames)}
             if progress:
                 progress(dyn, split, result[key][dyn])
     info = read_json(run_dir / "run.json", "run info")
