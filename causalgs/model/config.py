@@ -51,7 +51,7 @@ class KinematicConfig:
     # Weight of the mean twist size |u_k| + reach·|ω_k| over patterns and window frames (m/s): a body is at rest
     # unless the images say otherwise, so a body that has landed stops rather than drifting at the window's end.
     lambda_rest: float = 0.01
-    rest_reach: float = 0.2  # the reach, as a fraction of the scene size (a rotation costs its speed there)
+    rest_reach: float = 0.2  # with learned centres: a rotation costs its speed at this fraction of the scene size
     substeps: int = 1  # RK2 steps per frame interval
     lambda_dssim: float = 0.2
     static_threshold: float = 0.01  # a Gaussian that moves less than this fraction of the scene size is static

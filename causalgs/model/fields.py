@@ -238,15 +238,20 @@ class InversePhysics(nn.Module):
         T = self.frame_twists.to(W.dtype)
         return W + (1.0 - w) * T[i] + w * T[i + 1]
 
-    def place_centres(self, x: torch.Tensor, h: torch.Tensor, least: float = 1e-3) -> None:
+    def place_centres(self, x: torch.Tensor, h: torch.Tensor, least: float = 1e-3) -> torch.Tensor:
         """Put every pattern's centre at the h-weighted mean of the canonical positions ``x`` [N, 3] (``h`` [N, K]):
         a body turns about its centre of mass, so a spin does not move it. Patterns with less than ``least`` of a
-        particle's weight keep their centre."""
+        particle's weight keep their centre. Returns each pattern's radius of gyration about it [K] (the mean
+        distance a unit spin moves its points by; 0 for those patterns)."""
         with torch.no_grad():
             w = h.detach().to(self.centres.dtype)
+            x = x.detach().to(w.dtype)
             mass = w.sum(0)
-            com = (w.T @ x.detach().to(w.dtype)) / mass.clamp_min(1e-12)[:, None]
-            self.centres.copy_(torch.where((mass > least)[:, None], com, self.centres))
+            com = (w.T @ x) / mass.clamp_min(1e-12)[:, None]
+            held = mass > least
+            self.centres.copy_(torch.where(held[:, None], com, self.centres))
+            spread = (w * ((x[:, None, :] - com[None]) ** 2).sum(-1)).sum(0) / mass.clamp_min(1e-12)
+            return torch.where(held, spread.sqrt(), torch.zeros_like(spread))
 
     def affine(self, h: torch.Tensor, t: torch.Tensor, centres: torch.Tensor | None = None):
         """Per-particle velocity field at times t: v_i(x, t) = a[t, i] + ω[t, i] × x. Returns a, ω [T, N, 3].

@@ -338,9 +338,13 @@ class Trainer:
         for it in range(start, kc.iterations):
             window = self._window(it, kc.iterations, kc.window_start, kc.window_ramp, kc.window_power)
             picks = self._sample(window, kc.views_per_iter, newest=kc.newest_frames, focus=kc.focus)
-            if kc.lr_centres == 0:  # the patterns turn about their mass centres as the mixtures stand now
+            lever = reach
+            if kc.lr_centres == 0:  # the patterns turn about their mass centres as the mixtures stand now; a spin
+                # costs the speed it gives the pattern's points (its radius of gyration): a floor turning in place
+                # is dear, a small ball's spin is cheap
                 x0 = m.gaussians.means.detach()[m.dynamic]
-                f.place_centres(x0, f.mixture(f.code(x0)))
+                gyration = f.place_centres(x0, f.mixture(f.code(x0)))
+                lever = gyration.clamp_min(0.01 * float((m.hi - m.lo).max()))
             states = m.observed([k for k, _ in picks], residual=it >= residual_from)
             loss, metas = 0.0, []
             for state, (_, frame) in zip(states, picks, strict=True):
@@ -355,7 +359,7 @@ class Trainer:
                     loss = loss + rc.lambda_size * (state.offset / m.residual.bound()).square().mean() / len(picks)
             if kc.lambda_rest > 0:  # bodies at rest unless the images say otherwise: L1 on the patterns' twists
                 W = f.twists(torch.arange(window, dtype=torch.float64).to(f.centres.dtype) / self.timeline.fps)
-                loss = loss + kc.lambda_rest * (W[..., :3].norm(dim=-1) + reach * W[..., 3:].norm(dim=-1)).mean()
+                loss = loss + kc.lambda_rest * (W[..., :3].norm(dim=-1) + lever * W[..., 3:].norm(dim=-1)).mean()
             _finite(loss, "kinematic", it)
             opt.zero_grad(set_to_none=True)
             loss.backward()

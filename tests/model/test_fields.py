@@ -257,8 +257,9 @@ def test_a_pattern_turns_about_the_centre_it_carries():
         f.f_weight[-1].bias.copy_(torch.tensor([0.5, 0.0, 0.2, 0.0, 3.0, 1.0], dtype=torch.float64))
     x0 = torch.rand(50, 3, dtype=torch.float64) * 0.2 + torch.tensor([0.4, -0.3, 0.1], dtype=torch.float64)
     h = torch.ones(50, 1, dtype=torch.float64)
-    f.place_centres(x0, h)
+    gyration = f.place_centres(x0, h)
     assert torch.allclose(f.centres[0], x0.mean(0))
+    assert torch.allclose(gyration[0], (x0 - x0.mean(0)).square().sum(-1).mean().sqrt())
     xs, _ = integrate(f, h, x0, None, 20, 0.05, substeps=2)
     t = torch.arange(21, dtype=torch.float64)[:, None] * 0.05
     path = x0.mean(0) + t * torch.tensor([0.5, 0.0, 0.2], dtype=torch.float64)

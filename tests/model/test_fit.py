@@ -22,7 +22,9 @@ VIEWS, FRAMES, RES = 4, 10, 32
 TINY = {
     "canonical": {"iterations": 120, "densify_from": 40, "densify_until": 100, "densify_every": 30,
                   "max_gaussians": 3000, "sh_degree": 0, "log_every": 20},
-    "kinematic": {"iterations": 30, "window_start": 3},
+    # Learned centres: in 30 iterations the mass-centred floor pattern drifts past the static threshold, and the
+    # tests below read the ball as the only body.
+    "kinematic": {"iterations": 30, "window_start": 3, "lr_centres": 1e-3},
     # A 30-iteration kinematic fit of 10 frames tracks too little to infer up and gravity from (tests/model/
     # test_upright.py does that); the data's frame is taken as it is.
     "frame": {"infer": False},
