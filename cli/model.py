@@ -220,8 +220,8 @@ def cluster(run, k, k_max, masks, times, seed, device):
     from causalgs.render.views import render_camera
 
     _check_run(run)
-    report = cluster_run(run, k, k_max, seed)
     _ti.init(device, "float32")
+    report = cluster_run(run, k, k_max, seed, masks=times if masks else 0)
     data = load_dataset(read_json(run / "run.json", "run info")["data"], splits=("train",))
     cam = data.train[0].camera
     write_image(run / "cluster" / "clusters.png", render_camera(read_gaussians_ply(run / "cluster" / "clusters.ply"),
@@ -232,17 +232,9 @@ def cluster(run, k, k_max, masks, times, seed, device):
     gt = report.get("ground_truth")
     if gt and gt.get("matched_accuracy") is not None:
         line += f"; matched accuracy vs true objects {100 * gt['matched_accuracy']:.1f}%"
-    if masks:
-        import numpy as np
-
-        from causalgs.io import write_json
-        from causalgs.model.segmentation import segment_run
-
-        report["segmentation"] = segment_run(run, np.load(run / "cluster" / "labels.npy"), times)
-        write_json(run / "cluster" / "cluster.json", report)
-        sc = report["segmentation"].get("scores")
-        if sc:
-            line += (f"; masks AP {sc['ap']:.3f} PQ {sc['pq']:.3f} F1 {sc['f1']:.3f} P {sc['precision']:.3f} "
-                     f"R {sc['recall']:.3f} mIoU {sc['miou']:.3f}")  # fmt: skip
+    sc = (report.get("segmentation") or {}).get("scores")
+    if sc:
+        line += (f"; masks AP {sc['ap']:.3f} PQ {sc['pq']:.3f} F1 {sc['f1']:.3f} P {sc['precision']:.3f} "
+                 f"R {sc['recall']:.3f} mIoU {sc['miou']:.3f}")  # fmt: skip
     click.echo(line)
     click.echo(f"Wrote {run / 'cluster'}")

@@ -76,8 +76,10 @@ def choose_k(x: np.ndarray, k_max: int, seed: int = 0, sample: int = 1500) -> tu
     return max(scores, key=scores.get), scores
 
 
-def cluster_run(run_dir, k: int | None = None, k_max: int = 6, seed: int = 0) -> dict:
-    """Cluster the run's Gaussians; writes ``RUN/cluster/labels.npy``, ``clusters.ply`` and ``cluster.json``."""
+def cluster_run(run_dir, k: int | None = None, k_max: int = 6, seed: int = 0, masks: int = 0) -> dict:
+    """Cluster the run's Gaussians; writes ``RUN/cluster/labels.npy``, ``clusters.ply`` and ``cluster.json``. With
+    ``masks`` > 0 also label masks at that many frames, scored against the truth
+    (:func:`causalgs.model.segmentation.segment_run`; needs Taichi initialised)."""
     run_dir = Path(run_dir)
     path = run_dir / "physics.npz"
     if not path.is_file():
@@ -113,6 +115,10 @@ def cluster_run(run_dir, k: int | None = None, k_max: int = 6, seed: int = 0) ->
     out.mkdir(exist_ok=True)
     np.save(out / "labels.npy", labels)
     _write_ply(run_dir / "gaussians.ply", labels, out / "clusters.ply")
+    if masks > 0:
+        from causalgs.model.segmentation import segment_run  # it loads the model (torch, Taichi); clustering does not
+
+        report["segmentation"] = segment_run(run_dir, labels, masks)
     write_json(out / "cluster.json", report)
     return report
 

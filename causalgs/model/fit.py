@@ -338,14 +338,14 @@ class Trainer:
         for it in range(start, kc.iterations):
             window = self._window(it, kc.iterations, kc.window_start, kc.window_ramp, kc.window_power)
             picks = self._sample(window, kc.views_per_iter, newest=kc.newest_frames, focus=kc.focus)
+            z = m.codes()  # once per iteration: the centres, the motion and the residual all read them
             lever = reach
             if kc.lr_centres == 0:  # the patterns turn about their mass centres as the mixtures stand now; a spin
                 # costs the speed it gives the pattern's points (its radius of gyration): a floor turning in place
                 # is dear, a small ball's spin is cheap
-                x0 = m.gaussians.means.detach()[m.dynamic]
-                gyration = f.place_centres(x0, f.mixture(f.code(x0)))
+                gyration = f.place_centres(m.gaussians.means.detach()[m.dynamic], f.mixture(z.detach()))
                 lever = gyration.clamp_min(0.01 * float((m.hi - m.lo).max()))
-            states = m.observed([k for k, _ in picks], residual=it >= residual_from)
+            states = m.observed([k for k, _ in picks], residual=it >= residual_from, codes=z)
             loss, metas = 0.0, []
             for state, (_, frame) in zip(states, picks, strict=True):
                 img, _, meta = m.gaussians.render(frame.camera, self.bg, **state.overrides())

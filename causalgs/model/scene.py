@@ -187,13 +187,20 @@ class CausalGS(torch.nn.Module):
         f = self.kinematic_fields
         return f.mixture(f.code(x))
 
-    def kinematic(self, steps: int, *, rotations: bool = True, index: torch.Tensor | None = None, frames=None):
+    def codes(self) -> torch.Tensor:
+        """z [n, C] of the dynamic Gaussians at their canonical positions, by the kinematic path's fields."""
+        return self.kinematic_fields.code(self.gaussians.means[self.dynamic].detach())
+
+    def kinematic(self, steps: int, *, rotations: bool = True, index: torch.Tensor | None = None, frames=None,
+                  mixtures: torch.Tensor | None = None):  # fmt: skip
         """Means [F, N, 3] and quats [F, N, 4] at ``frames`` (default 0..steps, all ≤ steps). Gaussians not in
-        ``index`` (default: the dynamic ones) stay at their canonical state."""
+        ``index`` (default: the dynamic ones) stay at their canonical state. ``mixtures``: their h when the caller
+        has it already."""
         g = self.gaussians
         idx = torch.nonzero(self.dynamic).flatten() if index is None else index
         frames = list(range(steps + 1)) if frames is None else [int(k) for k in frames]
-        xs, qs = self.trajectories(self.mixtures(g.means[idx].detach()), g.means[idx],
+        h = self.mixtures(g.means[idx].detach()) if mixtures is None else mixtures
+        xs, qs = self.trajectories(h, g.means[idx],
                                    g.quats[idx] if rotations else None, steps, frames)  # fmt: skip
         means = g.means[None].expand(len(frames), -1, -1).clone()
         means[:, idx] = xs.to(means.dtype)
@@ -216,20 +223,20 @@ class CausalGS(torch.nn.Module):
         means, quats = self.kinematic(int(frame), frames=[int(frame)])
         return State(means[0], quats[0])
 
-    def observed(self, frames, *, residual: bool = True) -> list[State]:
+    def observed(self, frames, *, residual: bool = True, codes: torch.Tensor | None = None) -> list[State]:
         """The tracked state at ``frames``: the velocity field's (:meth:`kinematic`) plus, at observed frames, the
         deformation residual (:mod:`causalgs.model.residual`; ``residual=False`` leaves it out). The model's best
-        reconstruction of what was seen: what interpolation renders and the kinematic stage trains."""
+        reconstruction of what was seen: what interpolation renders and the kinematic stage trains. ``codes``:
+        :meth:`codes` when the caller has them already."""
         frames = [int(k) for k in frames]
-        means, quats = self.kinematic(max(frames), frames=frames)
+        z = self.codes() if codes is None else codes
+        h = self.kinematic_fields.mixture(z)
+        means, quats = self.kinematic(max(frames), frames=frames, mixtures=h)
         inside = [i for i, k in enumerate(frames) if k < self.train_frames]
         if self.residual is None or not residual or not inside:
             return [State(means[i], quats[i]) for i in range(len(frames))]
         g = self.gaussians
         idx = torch.nonzero(self.dynamic).flatten()
-        f = self.kinematic_fields
-        z = f.code(g.means[idx].detach())
-        h = f.mixture(z)
         out = [State(means[i], quats[i]) for i in range(len(frames))]
         for i in inside:
             d = self.residual(z, frames[i] / self.fps)

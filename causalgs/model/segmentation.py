@@ -20,11 +20,17 @@ every image (test camera × time):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 from scipy.optimize import linear_sum_assignment
 
+from causalgs.errors import CausalGSError
+from causalgs.io import read_json, write_image
+from causalgs.model.evaluate import states
+from causalgs.model.fit import load_model
 from causalgs.render.sh import C0
 
 IOU_MATCH = 0.5
@@ -128,16 +134,6 @@ def segment_run(run_dir, labels: np.ndarray, times: int = 10, progress=None) -> 
     """Render ``labels`` (one per Gaussian of the run, 0 = static) into masks for every test camera at ``times``
     evenly spaced frames of the video, write them as ``RUN/cluster/masks/r_{view:03d}_{frame:03d}.png`` (uint8
     label), and score them against the dataset's ``gt/masks`` where it has them (:func:`segmentation_scores`)."""
-    import json
-    from pathlib import Path
-
-    import cv2
-
-    from causalgs.errors import CausalGSError
-    from causalgs.io import write_image
-    from causalgs.model.evaluate import states
-    from causalgs.model.fit import load_model
-
     run_dir = Path(run_dir)
     model, data, tl = load_model(run_dir)
     if len(labels) != model.gaussians.n:
@@ -152,7 +148,7 @@ def segment_run(run_dir, labels: np.ndarray, times: int = 10, progress=None) -> 
     meta_path = Path(data.root) / "gt" / "meta.json"
     static = set()
     if meta_path.is_file():
-        objects = json.loads(meta_path.read_text()).get("objects") or []
+        objects = read_json(meta_path, "ground-truth meta").get("objects") or []
         static = {int(o["id"]) for o in objects if isinstance(o, dict) and o.get("kind") == "static" and "id" in o}
     lab = torch.as_tensor(labels, dtype=torch.int64)
     out = run_dir / "cluster" / "masks"
