@@ -8,8 +8,9 @@ All of it is plain torch (no Taichi field is touched here; DESIGN.md "One path f
   act as soft objects and the clustering reads them directly);
 - W_t = f_weight(γ_t(t)) + T(t) ∈ R^{K×6}: what each pattern does at time t, as a 6-DoF twist (3 linear + 3
   angular). T is a table of one twist per observed frame, interpolated linearly and held at its last value after
-  the window: the MLP's spectral bias smooths a bounce over many frames (the tracked ball of the bounce benchmark
-  flew 20 cm below its apexes), while a frame's own twist turns the velocity within that frame;
+  the window: the MLP's spectral bias smooths a bounce over several frames, while a frame's own twist can turn the
+  velocity within that frame (shrunk towards zero, it stays small on the bounce benchmark, whose tracked ball still
+  stops 11–19 cm short of the floor at each bounce);
 - v(p, t) = Σ_k h_k [u_k(t) + ω_k(t) × (p − c_k)]: the divergence-free 6-DoF basis B(p), with every pattern rotating
   about its own learned centre c_k (not only the world origin);
 - m = f_mat(γ(p)) + h·Θ: Young's modulus (log-space, bounded), Poisson ratio and density (bounded). Θ ∈ R^{K×3}
