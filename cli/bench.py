@@ -273,8 +273,8 @@ def recovery_table(rows: list[dict]) -> str:
 @click.option("--out", "out_root", type=click.Path(file_okay=False), required=True,
               help="Folder for the runs (SCENE/ROW); finished runs are scored again, not refitted.")  # fmt: skip
 @click.option("--scenes", default="jelly,fallingball,bounce", show_default=True, help="Scenes, comma-separated.")
-@click.option("--rows", default="full,no simulator,IPI off,K=4,K=32", show_default=True,
-              help="Ablation rows, comma-separated: full, no simulator, IPI off, K=4, K=32.")  # fmt: skip
+@click.option("--rows", default="full,no simulator,VFD off,IPI off,K=4,K=32", show_default=True,
+              help="Ablation rows, comma-separated: full, no simulator, VFD off, IPI off, K=4, K=32.")  # fmt: skip
 @click.option("--preset", type=click.Choice(["quick", "full"]), default="quick", show_default=True)
 @click.option("--lpips", "lpips_nets", default="alex,vgg", show_default=True, help="LPIPS networks: alex, vgg, none.")
 @device_option

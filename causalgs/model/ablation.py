@@ -5,6 +5,8 @@ whose extrapolation is scored:
 
 - ``full``: the model as configured (K = 16 motion patterns), forecasting with the simulator;
 - ``no simulator``: the same fit's kinematic-only model (``kinematic.pt``), its velocity field extrapolated;
+- ``VFD off``: an unstructured velocity v(x0, t) per material point instead of code, bottleneck and basis
+  (``fields.velocity=mlp``, :class:`~causalgs.model.fields.Flow`);
 - ``IPI off``: one material for the whole scene instead of f_mat's per-particle inference (``fields.materials``);
 - ``K=4``, ``K=32``: other numbers of motion patterns.
 
@@ -34,6 +36,7 @@ class Ablation:
 ABLATIONS: dict[str, Ablation] = {
     "full": Ablation(),
     "no simulator": Ablation(dynamics="kinematic-only", run="full"),
+    "VFD off": Ablation(("fields.velocity=mlp",)),
     "IPI off": Ablation(("fields.materials=global",)),
     "K=4": Ablation(("fields.patterns=4",)),
     "K=32": Ablation(("fields.patterns=32",)),

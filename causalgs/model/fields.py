@@ -53,6 +53,10 @@ class FieldsConfig:
     # "field": every particle's material from f_mat(γ(p)) + h·Θ; "global": one material for the whole scene (f_mat's
     # last bias alone), the paper's ablation without inverse-physics inference of intrinsic properties (IPI)
     materials: str = "field"
+    # "basis": v = h·W_t·B(p), the velocity field decomposition (VFD) above; "mlp": one unstructured velocity per
+    # material point, v(x0, t) = MLP(γ(x0), γ_t(t)), with no code, bottleneck or basis (the paper's ablation without
+    # VFD; rotations of the Gaussians are held, having no velocity Jacobian)
+    velocity: str = "basis"
     time_freqs: int = 6  # frequencies of γ_t(t): the shortest period is 1/16 of the window (4 frames of 67), so a
     # bounce or an impact, which turns the velocity within a frame or two, is not smoothed over a dozen frames
     E_range: tuple[float, float] = (2.0e3, 4.0e5)  # Pa
@@ -72,6 +76,8 @@ class FieldsConfig:
             raise CausalGSError(f"nu_init = {self.nu_init} must lie in nu_range = {self.nu_range} within [0, 0.5)")
         if not 0 < self.density_range[0] <= self.density_range[1]:
             raise CausalGSError(f"density_range = {self.density_range} must be positive and ordered")
+        if self.velocity not in ("basis", "mlp"):
+            raise CausalGSError(f"fields.velocity = {self.velocity!r} must be 'basis' or 'mlp'")
         if self.materials not in ("field", "global"):
             raise CausalGSError(f"fields.materials = {self.materials!r} must be 'field' or 'global'")
         if self.patterns < 1 or self.code_dim < 1 or self.width < 1 or self.depth < 0:
@@ -127,6 +133,26 @@ def mlp(n_in: int, n_out: int, width: int, depth: int) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+class Flow(nn.Module):
+    """The unstructured velocity of the ablation without VFD: v(x0, t) = W₂ SiLU(A γ(x0) + B γ_t(t) + b) + c for the
+    material point at canonical x0, zero at the start. The hidden layer is a sum of a position and a time term, so
+    the velocities of N points at T times cost O((N + T)·width) for the first layer and O(N·T·width) after it, not a
+    network call per point and time."""
+
+    def __init__(self, n_pos: int, n_time: int, width: int):
+        super().__init__()
+        self.pos = nn.Linear(n_pos, width)
+        self.time = nn.Linear(n_time, width, bias=False)
+        self.out = nn.Linear(width, 3)
+        with torch.no_grad():
+            self.out.weight.mul_(0.01)
+            self.out.bias.zero_()
+
+    def forward(self, gx: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+        """Velocities [T, N, 3] from the encoded positions γ(x0) [N, ·] and times γ_t(t) [T, ·]."""
+        return self.out(nn.functional.silu(self.pos(gx)[None] + self.time(gt)[:, None]))
+
+
 def _logit(x: float) -> float:
     x = min(max(x, 1e-4), 1 - 1e-4)
     return math.log(x / (1 - x))
@@ -151,6 +177,7 @@ class InversePhysics(nn.Module):
         self.f_neck = mlp(c.code_dim, c.patterns, c.width, 0)
         self.f_weight = mlp(self.enc_t.out_dim, c.patterns * 6, c.width, c.depth)
         self.f_mat = mlp(self.enc.out_dim, 3, c.width, c.depth)
+        self.flow = Flow(self.enc.out_dim, self.enc_t.out_dim, c.width) if c.velocity == "mlp" else None
         # Start at rest (zero twists) and at E_init / nu_init everywhere.
         with torch.no_grad():
             self.f_weight[-1].weight.mul_(0.01)
@@ -197,6 +224,15 @@ class InversePhysics(nn.Module):
             T = self.frame_twists.double().reshape(len(self.frame_twists), K * 6)
             self.frame_twists.copy_((T @ block.T).reshape(self.frame_twists.shape).to(self.frame_twists.dtype))
             self.centres.copy_(torch.as_tensor(sim.points(self.centres.double().numpy())).to(self.centres.dtype))
+            if self.flow is not None:  # v' = s R v
+                out = self.flow.out
+                out.weight.copy_((B[:3, :3] @ out.weight.double()).to(out.weight.dtype))
+                out.bias.copy_((B[:3, :3] @ out.bias.double()).to(out.bias.dtype))
+
+    def motion_parameters(self) -> list[nn.Parameter]:
+        """The weights of the motion: f_vel, f_neck, f_weight (and the unstructured :class:`Flow`, if any)."""
+        nets = [*self.f_vel.parameters(), *self.f_neck.parameters(), *self.f_weight.parameters()]
+        return nets + ([*self.flow.parameters()] if self.flow is not None else [])
 
     # -- per particle ----------------------------------------------------------------------------------------------
     def code(self, p: torch.Tensor) -> torch.Tensor:
@@ -264,8 +300,21 @@ class InversePhysics(nn.Module):
         a_k = u - torch.linalg.cross(w, c.expand_as(w))  # u_k − ω_k × c_k
         return torch.einsum("nk,tkd->tnd", h, a_k), torch.einsum("nk,tkd->tnd", h, w)
 
+    @property
+    def structured(self) -> bool:
+        """Whether the motion is the velocity field decomposition (patterns and basis), not :class:`Flow`."""
+        return self.flow is None
+
+    def flow_velocity(self, x0: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """The unstructured velocities [T, N, 3] of the material points at canonical ``x0`` at times ``t`` [T]."""
+        t = torch.as_tensor(t, dtype=x0.dtype).reshape(-1, 1)
+        return self.flow(self.enc(x0), self.enc_t(t))
+
     def velocity(self, p: torch.Tensor, t: float, h: torch.Tensor | None = None) -> torch.Tensor:
-        """v(p, t) [N, 3] for particles at p whose mixtures are h (default: computed at p, i.e. canonical p)."""
+        """v(p, t) [N, 3] for particles at p whose mixtures are h (default: computed at p, i.e. canonical p). With
+        the unstructured field (:class:`Flow`), p is the particles' canonical position."""
+        if self.flow is not None:
+            return self.flow_velocity(p, torch.tensor([float(t)], dtype=torch.float64))[0]
         if h is None:
             h = self.mixture(self.code(p))
         a, w = self.affine(h, torch.tensor([float(t)]))

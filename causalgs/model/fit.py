@@ -50,6 +50,7 @@ from causalgs.sim.effects import REGISTRY, Effects
 from causalgs.similarity import Similarity
 
 GRAVITY_Z = "gravity.g[2]"  # gravity's vertical component in the physics frame
+REST_SAMPLE = 2048  # material points whose speed the rest penalty of the unstructured field (VFD off) averages
 UPRIGHT_GROUP = 20  # a motion pattern tracked by fewer solid Gaussians gives no centroid for free flight
 
 STAGES = ("canonical", "kinematic", "physics", "assimilate", "done")
@@ -322,7 +323,7 @@ class Trainer:
         t0 = time.monotonic() - self.stage_seconds.get("kinematic", 0.0)
         m, kc = self.model, self.config.kinematic
         f = m.fields
-        nets = [*f.f_vel.parameters(), *f.f_neck.parameters(), *f.f_weight.parameters()]
+        nets = f.motion_parameters()
         opt = torch.optim.Adam([{"params": nets, "lr": kc.lr}, {"params": [f.centres], "lr": kc.lr_centres},
                                 {"params": [f.frame_twists], "lr": kc.lr_frame_twists}])  # fmt: skip
         reach = kc.rest_reach * float((m.hi - m.lo).max())  # a rotation rate times this is a speed
@@ -358,8 +359,15 @@ class Trainer:
                 if state.offset is not None and rc.lambda_size > 0:  # the smallest residual that explains the images
                     loss = loss + rc.lambda_size * (state.offset / m.residual.bound()).square().mean() / len(picks)
             if kc.lambda_rest > 0:  # bodies at rest unless the images say otherwise: L1 on the patterns' twists
-                W = f.twists(torch.arange(window, dtype=torch.float64).to(f.centres.dtype) / self.timeline.fps)
-                loss = loss + kc.lambda_rest * (W[..., :3].norm(dim=-1) + lever * W[..., 3:].norm(dim=-1)).mean()
+                times = torch.arange(window, dtype=torch.float64).to(f.centres.dtype) / self.timeline.fps
+                if f.structured:
+                    W = f.twists(times)
+                    rest = (W[..., :3].norm(dim=-1) + lever * W[..., 3:].norm(dim=-1)).mean()
+                else:  # the unstructured field: the mean speed of a sample of the material points
+                    x0 = m.gaussians.means.detach()[m.dynamic]
+                    x0 = x0[torch.as_tensor(self.rng.permutation(len(x0))[:REST_SAMPLE])]
+                    rest = f.flow_velocity(x0, times).norm(dim=-1).mean()
+                loss = loss + kc.lambda_rest * rest
             _finite(loss, "kinematic", it)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -478,7 +486,7 @@ class Trainer:
         # such as friction coefficients, so one Adam step shifts a ground plane by about a millimetre.
         step_scale = torch.tensor([LENGTH_STEP if n.split("[")[0].split(".")[1] in LENGTHS else 1.0 for n in names],
                                   dtype=torch.float64)  # fmt: skip
-        nets = [*f.f_vel.parameters(), *f.f_neck.parameters(), *f.f_weight.parameters()]
+        nets = f.motion_parameters()
         opt = torch.optim.Adam([
             {"params": list(f.f_mat.parameters()), "lr": pc.lr_mat},
             {"params": [f.pattern_materials], "lr": pc.lr_pattern_mat},

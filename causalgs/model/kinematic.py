@@ -158,3 +158,18 @@ def blend(h: torch.Tensor, x0: torch.Tensor, q0: torch.Tensor | None, R: torch.T
     qb = torch.einsum("nk,kd->nd", h * sign, q)
     qb = qb / qb.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     return x, quat_mul(qb, q0 / q0.norm(dim=-1, keepdim=True))
+
+
+def flow_paths(fields: InversePhysics, x0: torch.Tensor, steps: int, dt: float, substeps: int = 1) -> torch.Tensor:
+    """Positions [steps + 1, N, 3] of material points at canonical ``x0`` moved by the unstructured velocity
+    (:class:`~causalgs.model.fields.Flow`, the ablation without VFD): v depends on the point and the time only, so the
+    midpoint rule is a sum, x(k·dt) = x0 + Σ_{j < k·m} dt/m · v(x0, (j + ½)·dt/m), with m = ``substeps``."""
+    m = max(1, int(substeps))
+    dts = dt / m
+    n = int(steps) * m
+    if n == 0:
+        return x0[None]
+    mid = (torch.arange(n, dtype=torch.float64) + 0.5) * dts
+    v = fields.flow_velocity(x0, mid.to(x0.dtype))  # [n, N, 3]
+    path = torch.cumsum(v * dts, dim=0)[m - 1::m]
+    return torch.cat([x0[None], x0[None] + path], dim=0)

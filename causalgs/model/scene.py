@@ -23,7 +23,7 @@ from causalgs.errors import CausalGSError
 from causalgs.model.config import FitConfig
 from causalgs.model.fields import InversePhysics
 from causalgs.model.gaussians import Gaussians
-from causalgs.model.kinematic import blend, pattern_motion, quat_mul, rotvec_quat
+from causalgs.model.kinematic import blend, flow_paths, pattern_motion, quat_mul, rotvec_quat
 from causalgs.model.particles import Particles, TooManyParticles, build_particles
 from causalgs.model.residual import Residual, remove_rigid
 from causalgs.render.reference import quat_scale_to_cov
@@ -214,7 +214,11 @@ class CausalGS(torch.nn.Module):
         """Positions [F, n, 3] (and rotations [F, n, 4] if q0 is given) at ``frames`` of particles with mixtures h
         starting at x0: the patterns' rigid motions integrated by RK2 at dt = 1/fps, blended by h (see
         :func:`causalgs.model.kinematic.blend`)."""
-        R, t, q = pattern_motion(self.kinematic_fields, steps, 1.0 / self.fps, self.config.kinematic.substeps)
+        f = self.kinematic_fields
+        if not f.structured:  # the ablation without VFD: one velocity per material point, rotations held
+            xs = flow_paths(f, x0, steps, 1.0 / self.fps, self.config.kinematic.substeps)[list(frames)]
+            return xs, (q0[None].expand(len(frames), -1, -1) if q0 is not None else None)
+        R, t, q = pattern_motion(f, steps, 1.0 / self.fps, self.config.kinematic.substeps)
         out = [blend(h, x0, q0, R[k], t[k], q[k]) for k in frames]
         xs = torch.stack([x for x, _ in out])
         return xs, (torch.stack([r for _, r in out]) if q0 is not None else None)
@@ -475,6 +479,8 @@ class CausalGS(torch.nn.Module):
                 ks = list(range(max(0, k - VELOCITY_FRAMES + 1), k + 1))
                 xs, _ = self.trajectories(self.mixtures(x0), x0, None, k, ks)
                 v = _resting(xs, self.fps)
+            elif not f.structured:
+                v = f.velocity(x0, k / self.fps)
             else:
                 R, t, _ = pattern_motion(f, k, 1.0 / self.fps, self.config.kinematic.substeps)
                 c = (R[k] @ f.centres[..., None])[..., 0] + t[k] if bool(f.moving_centres) else f.centres

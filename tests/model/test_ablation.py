@@ -14,6 +14,8 @@ from causalgs.model.ablation import ABLATIONS, AblationResult, ablation_config, 
 def test_rows_switch_one_part_each():
     full = ablation_config("quick", ABLATIONS["full"])
     assert full.fields.materials == "field" and full.fields.patterns == 16
+    assert full.fields.velocity == "basis"
+    assert ablation_config("quick", ABLATIONS["VFD off"]).fields.velocity == "mlp"
     assert ablation_config("quick", ABLATIONS["IPI off"]).fields.materials == "global"
     assert ablation_config("quick", ABLATIONS["K=4"]).fields.patterns == 4
     assert ablation_config("quick", ABLATIONS["K=32"]).fields.patterns == 32

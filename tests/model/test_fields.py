@@ -10,7 +10,7 @@ import torch
 
 from causalgs.errors import CausalGSError
 from causalgs.model.fields import FieldsConfig, InversePhysics, basis
-from causalgs.model.kinematic import integrate, quat_mul, rotvec_quat
+from causalgs.model.kinematic import flow_paths, integrate, quat_mul, rotvec_quat
 
 
 def _fields(frames: int = 11, **kw) -> InversePhysics:
@@ -272,3 +272,72 @@ def test_a_pattern_turns_about_the_centre_it_carries():
         f.moving_centres.fill_(False)
     fixed, _ = integrate(f, h, x0, None, 20, 0.05, substeps=2)
     assert float((fixed.mean(1) - path).norm(dim=-1).max()) > 0.05
+
+
+def _flow_fields(**kw) -> InversePhysics:
+    f = _fields(velocity="mlp", **kw)
+    with torch.no_grad():
+        for p in f.flow.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    return f
+
+
+def test_the_unstructured_field_starts_at_rest_and_integrates_by_the_midpoint_rule():
+    """VFD off (fields.velocity=mlp): v(x0, t) per material point, zero-ish at the start; its paths are the midpoint
+    sums of a plain loop over the velocity at every half step, with substeps refining the same rule."""
+    f0 = _fields(velocity="mlp")
+    x0 = torch.rand(30, 3, dtype=torch.float64) * 2 - 1
+    assert float(f0.velocity(x0, 0.3).detach().abs().max()) < 0.05 and not f0.structured and _fields().structured
+    f = _flow_fields()
+    dt, steps = 0.1, 6
+    ref, x = [x0], x0
+    for j in range(steps):
+        x = x + dt * f.velocity(x0, (j + 0.5) * dt)
+        ref.append(x)
+    assert torch.allclose(flow_paths(f, x0, steps, dt), torch.stack(ref), atol=1e-12)
+    fine = flow_paths(f, x0, steps, dt, substeps=2)
+    ref2, x = [x0], x0
+    for j in range(2 * steps):
+        x = x + 0.5 * dt * f.velocity(x0, (j + 0.5) * 0.5 * dt)
+        if j % 2 == 1:
+            ref2.append(x)
+    assert torch.allclose(fine, torch.stack(ref2), atol=1e-12)
+    assert torch.equal(flow_paths(f, x0, 0, dt), x0[None])
+    with pytest.raises(CausalGSError, match="fields.velocity"):
+        FieldsConfig(velocity="grid")
+
+
+def test_unstructured_paths_gradcheck_float64():
+    """The paths against finite differences in the flow's weights and the canonical positions."""
+    f = _flow_fields(width=6, pos_freqs=1, time_freqs=1)
+    x0 = (torch.rand(4, 3, dtype=torch.float64) * 2 - 1).requires_grad_(True)
+
+    class Paths(torch.nn.Module):  # flow_paths as a function of the fields' parameters (functional_call)
+        def __init__(self):
+            super().__init__()
+            self.f = f
+
+        def forward(self, x):
+            return flow_paths(self.f, x, 3, 0.2)
+
+    paths_of = Paths()
+
+    def paths(x, weight):
+        return torch.func.functional_call(paths_of, {"f.flow.out.weight": weight}, (x,))
+
+    weight = f.flow.out.weight.detach().clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(paths, (x0, weight), eps=1e-6, atol=1e-8)
+
+
+def test_the_unstructured_field_turns_with_the_world():
+    """Re-posed by x' = s R x + t, the material point's velocity becomes s R v at every time."""
+    from causalgs.similarity import Similarity, random_rotation
+
+    f = _flow_fields()
+    sim = Similarity.make(random_rotation(1), 2.5, [0.3, 1.0, -1.0])
+    x = torch.rand(20, 3, dtype=torch.float64) * 2 - 1
+    before = [f.velocity(x, t).detach() for t in (0.0, 0.5)]
+    f.reframe(sim)
+    y = torch.as_tensor(sim.points(x.numpy()))
+    for t, v in zip((0.0, 0.5), before, strict=True):
+        assert torch.allclose(f.velocity(y, t), torch.as_tensor(sim.vectors(v.numpy())), atol=1e-12)
