@@ -331,7 +331,7 @@ def refine_tracks(model, data, timeline, cfg: RefineConfig | None = None, progre
     if len(idx) == 0:
         raise CausalGSError("the fit has no moving Gaussians: there is no motion to refine")
     if not model.kinematic_fields.structured:
-        raise CausalGSError("the fit's motion is unstructured (fields.velocity=mlp): it has no motion patterns to refine")
+        raise CausalGSError("the fit's motion is unstructured (fields.velocity=mlp): it has no patterns to refine")
     bg = tuple(float(v) for v in data.background)
     plane = (floor if floor is not None else visible_floor(model)) if cfg.ground else None
     if half not in (None, 0, 1):
