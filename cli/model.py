@@ -53,6 +53,7 @@ def fit(data, out, preset, config_path, overrides, no_physics, resume, seed, dev
     Stages (each with a progress bar; losses go to log.jsonl and losses.png):
       canonical  3D Gaussians at t = 0 (densified and pruned)
       kinematic  physics codes and velocity field through renders of the moving Gaussians
+      track      each motion pattern's motion refined frame by frame against that frame's images
       physics    MPM particles from the dynamic Gaussians; materials, initial velocity and effect
                  parameters trained through the differentiable simulator; then one factor on every
                  E chosen by how well the replay fits the images (physics.calibrate; [] for off)

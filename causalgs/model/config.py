@@ -21,6 +21,7 @@ from causalgs.model.appearance import AppearanceConfig
 from causalgs.model.canonical import CanonicalConfig
 from causalgs.model.fields import FieldsConfig
 from causalgs.model.particles import FILLS
+from causalgs.model.refine import RefineConfig
 from causalgs.model.residual import ResidualConfig
 from causalgs.model.upright import FrameConfig
 from causalgs.settings import check_keys
@@ -59,6 +60,11 @@ class KinematicConfig:
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
     # the deformation residual inside the observed window (causalgs.model.residual)
     residual: ResidualConfig = field(default_factory=ResidualConfig)
+    # After the stage, each pattern's motion refined frame by frame against that frame's images, each frame from the
+    # last one's correction (causalgs.model.refine): the tracked state that interpolation renders, the physical
+    # stage is held to and the forecast starts from. The velocity field smooths an impact over several frames; a
+    # frame's own correction does not (track.iterations = 0: off).
+    track: RefineConfig = field(default_factory=RefineConfig)
 
 
 @dataclass

@@ -43,6 +43,7 @@ from causalgs.model.appearance import JointAppearance
 from causalgs.model.canonical import train_canonical
 from causalgs.model.config import FitConfig
 from causalgs.model.gaussians import Gaussians
+from causalgs.model.refine import refine_tracks
 from causalgs.model.scene import FORECAST_SOURCES, CausalGS, floor_patches, scene_bounds, stray_gaussians
 from causalgs.model.timeline import Timeline
 from causalgs.model.upright import GRAVITY, FrameConfig, Upright, infer_upright, normalising
@@ -391,9 +392,31 @@ class Trainer:
             joint.finish()
         m.keep_track()
         self._split_static()
+        partial = self.run.out / "track-partial.npz"
+        self._track(partial)
         self.stage_seconds["kinematic"] = time.monotonic() - t0
         self.run.save(self._payload("physics", 0))
         self.run.save(self._payload("physics", 0), self.run.out / "kinematic.pt")
+        partial.unlink(missing_ok=True)
+
+    def _track(self, partial: Path) -> None:
+        """The per-frame refinement of the tracked motion (``kinematic.track``; :mod:`causalgs.model.refine`), kept in
+        the model; an interrupted one goes on from ``partial``. Its scores of the motion before and after, on
+        held-out cameras, are logged, never used to choose."""
+        m, cfg = self.model, self.config.kinematic.track
+        if cfg.iterations == 0 or not m.kinematic_fields.structured or not bool(m.dynamic.any()):
+            return
+        t0 = time.monotonic()
+
+        def progress(done, total):
+            self.progress("track", done, total, {})
+
+        tracks = refine_tracks(m, self.data, self.timeline, cfg, progress=progress, checkpoint=partial)
+        m.set_tracks(torch.from_numpy(tracks.A), torch.from_numpy(tracks.b))
+        self.run.log({"stage": "kinematic", "it": self.config.kinematic.iterations, "track": {
+            "frames": len(tracks.A), "scored_on": tracks.scored_on, "seconds": time.monotonic() - t0,
+            "psnr_before": [round(float(v), 3) for v in tracks.psnr_before],
+            "psnr_after": [round(float(v), 3) for v in tracks.psnr_after]}})  # fmt: skip
 
     def _split_static(self) -> None:
         """Static and dynamic Gaussians; in between, the physics frame is inferred and the model re-posed into it
@@ -507,7 +530,7 @@ class Trainer:
             out = m.simulate(frames, start=begin)
             with torch.no_grad():
                 x0 = out["x0"].detach()
-                target, _ = m.trajectories(m.mixtures(x0), x0, None, window - 1, frames)
+                target = m.tracked_positions(x0, frames)
             # Charbonnier distance in grid cells: a robust pull towards the kinematic fit, which may have lost track
             # of a body late in the window (a squared loss would let those frames dominate).
             d2 = ((out["x"] - target.to(out["x"].dtype)) ** 2).sum(-1) / dx**2

@@ -25,6 +25,7 @@ from causalgs.model.fields import InversePhysics
 from causalgs.model.gaussians import Gaussians
 from causalgs.model.kinematic import blend, flow_paths, pattern_motion, quat_mul, rotvec_quat
 from causalgs.model.particles import Particles, TooManyParticles, build_particles
+from causalgs.model.refine import jacobian, place
 from causalgs.model.residual import Residual, remove_rigid
 from causalgs.render.reference import quat_scale_to_cov
 from causalgs.sim.autograd import deformed_covariance, simulate
@@ -90,6 +91,11 @@ class CausalGS(torch.nn.Module):
         size = float(np.max(np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)))
         self.residual = Residual(rc, config.fields.code_dim, window["duration"], size) if rc.enabled else None
         self.register_buffer("has_tracked", torch.zeros((), dtype=torch.bool))
+        # The per-frame refinement of the tracked motion (kinematic.track, causalgs.model.refine): every pattern's
+        # motion x = A x0 + b at observed frames 0..n-1, fitted frame by frame to that frame's images (n = 0: none).
+        K = config.fields.patterns
+        self.register_buffer("track_A", torch.zeros(0, K, 3, 3, dtype=torch.float64))
+        self.register_buffer("track_b", torch.zeros(0, K, 3, dtype=torch.float64))
         self.register_buffer("lo", torch.as_tensor(lo, dtype=torch.float64))
         self.register_buffer("hi", torch.as_tensor(hi, dtype=torch.float64))
         self.register_buffer("dynamic", torch.ones(gaussians.n, dtype=torch.bool))
@@ -122,7 +128,9 @@ class CausalGS(torch.nn.Module):
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         # Buffers and parameters whose size depends on the data (Gaussian count, effect count): take the saved size.
-        for name in ("dynamic", "effect_params"):
+        state_dict.setdefault(prefix + "track_A", self.track_A[:0])  # saved before the per-frame refinement
+        state_dict.setdefault(prefix + "track_b", self.track_b[:0])
+        for name in ("dynamic", "effect_params", "track_A", "track_b"):
             key = prefix + name
             if key in state_dict and state_dict[key].shape != getattr(self, name).shape:
                 old = getattr(self, name)
@@ -171,11 +179,23 @@ class CausalGS(torch.nn.Module):
         self.tracked.reframe(sim)
         if self.residual is not None:
             self.residual.reframe(sim)
+        if len(self.track_A):  # x' = s R x + t: A' = R A Rᵀ, b' = s R b + t − A' t
+            R = torch.as_tensor(sim.R, dtype=torch.float64)
+            t = torch.as_tensor(sim.t, dtype=torch.float64)
+            A = R @ self.track_A @ R.T
+            b = sim.scale * self.track_b @ R.T + t - (A @ t[:, None])[..., 0]
+            self.set_tracks(A, b)
         lo, hi = scene_bounds(self.gaussians.means.detach().double().numpy())
         with torch.no_grad():
             self.lo.copy_(torch.as_tensor(lo))
             self.hi.copy_(torch.as_tensor(hi))
             self.frame.copy_(torch.as_tensor(self.similarity().then(sim).matrix()))
+
+    def set_tracks(self, A: torch.Tensor, b: torch.Tensor) -> None:
+        """Keep the refined motion of the observed frames (:class:`~causalgs.model.refine.Tracks`' A [n, K, 3, 3],
+        b [n, K, 3]); from now on the tracked state of those frames is theirs."""
+        self.register_buffer("track_A", torch.as_tensor(A, dtype=torch.float64).clone())
+        self.register_buffer("track_b", torch.as_tensor(b, dtype=torch.float64).clone())
 
     @property
     def kinematic_fields(self) -> InversePhysics:
@@ -223,33 +243,55 @@ class CausalGS(torch.nn.Module):
         xs = torch.stack([x for x, _ in out])
         return xs, (torch.stack([r for _, r in out]) if q0 is not None else None)
 
+    def tracked_positions(self, x0: torch.Tensor, frames) -> torch.Tensor:
+        """Positions [F, n, 3] at ``frames`` of the material points at canonical ``x0``: the refined tracks where
+        they exist (every frame of ``frames``), else the velocity field's motion (:meth:`trajectories`)."""
+        frames = [int(k) for k in frames]
+        h = self.mixtures(x0)
+        if frames and max(frames) < len(self.track_A):
+            A, b = self.track_A.to(x0.dtype), self.track_b.to(x0.dtype)
+            return torch.stack([place(h, x0, A[k], b[k]) for k in frames])
+        return self.trajectories(h, x0, None, max(frames, default=0), frames)[0]
+
     def kinematic_state(self, frame: int) -> State:
         means, quats = self.kinematic(int(frame), frames=[int(frame)])
         return State(means[0], quats[0])
 
     def observed(self, frames, *, residual: bool = True, codes: torch.Tensor | None = None) -> list[State]:
-        """The tracked state at ``frames``: the velocity field's (:meth:`kinematic`) plus, at observed frames, the
-        deformation residual (:mod:`causalgs.model.residual`; ``residual=False`` leaves it out). The model's best
-        reconstruction of what was seen: what interpolation renders and the kinematic stage trains. ``codes``:
-        :meth:`codes` when the caller has them already."""
+        """The tracked state at ``frames``: the refined tracks at the observed frames they cover, else the velocity
+        field's motion (:meth:`kinematic`), plus, at observed frames, the deformation residual
+        (:mod:`causalgs.model.residual`; ``residual=False`` leaves it out). The model's best reconstruction of what
+        was seen: what interpolation renders and the kinematic stage trains. ``codes``: :meth:`codes` when the
+        caller has them already."""
         frames = [int(k) for k in frames]
         z = self.codes() if codes is None else codes
         h = self.kinematic_fields.mixture(z)
         means, quats = self.kinematic(max(frames), frames=frames, mixtures=h)
-        inside = [i for i, k in enumerate(frames) if k < self.train_frames]
-        if self.residual is None or not residual or not inside:
-            return [State(means[i], quats[i]) for i in range(len(frames))]
         g = self.gaussians
         idx = torch.nonzero(self.dynamic).flatten()
-        out = [State(means[i], quats[i]) for i in range(len(frames))]
-        for i in inside:
-            d = self.residual(z, frames[i] / self.fps)
-            dx = remove_rigid(d.dx, means[i][idx].detach(), h).to(means.dtype)
-            m, q, s = means[i].clone(), quats[i].clone(), g.scales.clone()
-            m[idx] = m[idx] + dx
-            q[idx] = quat_mul(rotvec_quat(d.drot.to(q.dtype)), q[idx])
-            s[idx] = s[idx] + d.dlog_scale.to(s.dtype)
-            out[i] = State(m, q, scales=s, offset=dx)
+        out = []
+        for i, k in enumerate(frames):
+            refined = k < len(self.track_A)
+            m, q, s = means[i], (g.quats if refined else quats[i]), g.scales
+            if refined:  # each pattern's refined motion; the covariances follow its Jacobian
+                A, b = self.track_A[k].to(m.dtype), self.track_b[k].to(m.dtype)
+                m = m.clone()
+                m[idx] = place(h.to(m.dtype), g.means[idx], A, b)
+            dx = None
+            if residual and self.residual is not None and k < self.train_frames:
+                d = self.residual(z, k / self.fps)
+                dx = remove_rigid(d.dx, m[idx].detach(), h).to(m.dtype)
+                m, q, s = m.clone(), q.clone(), s.clone()
+                m[idx] = m[idx] + dx
+                q[idx] = quat_mul(rotvec_quat(d.drot.to(q.dtype)), q[idx])
+                s[idx] = s[idx] + d.dlog_scale.to(s.dtype)
+            if refined:
+                covs = quat_scale_to_cov(q, torch.exp(s))
+                J = jacobian(h.to(m.dtype), A)
+                covs = covs.index_put((idx,), J @ covs[idx] @ J.transpose(1, 2))
+                out.append(State(m, covs=covs, offset=dx))
+            else:
+                out.append(State(m, q, scales=s if dx is not None else None, offset=dx))
         return out
 
     # -- physical path ----------------------------------------------------------------------------------------------
@@ -466,19 +508,18 @@ class CausalGS(torch.nn.Module):
         x0 = p.x0.to(f.centres.dtype)
         k = int(frame)
 
-        def place(x):
-            return self.trajectories(self.mixtures(x), x, None, k, [k])[0][0]
+        def at_k(x):
+            return self.tracked_positions(x, [k])[0]
 
         with torch.enable_grad():
-            cols = [torch.func.jvp(place, (x0,), (torch.zeros_like(x0).index_fill_(1, torch.tensor([i]), 1.0),))
+            cols = [torch.func.jvp(at_k, (x0,), (torch.zeros_like(x0).index_fill_(1, torch.tensor([i]), 1.0),))
                     for i in range(3)]  # fmt: skip
         x = cols[0][0].detach()
         F = _rotation(torch.stack([c[1].detach() for c in cols], dim=-1))
         with torch.no_grad():
             if k >= 2:  # the slope at k of a least-squares parabola through the last VELOCITY_FRAMES tracked positions
                 ks = list(range(max(0, k - VELOCITY_FRAMES + 1), k + 1))
-                xs, _ = self.trajectories(self.mixtures(x0), x0, None, k, ks)
-                v = _resting(xs, self.fps)
+                v = _resting(self.tracked_positions(x0, ks), self.fps)
             elif not f.structured:
                 v = f.velocity(x0, k / self.fps)
             else:

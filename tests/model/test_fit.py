@@ -75,6 +75,9 @@ def test_fit_writes_a_complete_run(fitted):
     log = [json.loads(line) for line in (fitted / "log.jsonl").read_text().splitlines()]
     stages = {r["stage"] for r in log}
     assert stages == {"canonical", "kinematic", "physics", "assimilate"}
+    (track,) = [r["track"] for r in log if "track" in r]  # the per-frame refinement, scored on held-out cameras
+    assert track["frames"] == info["train_frames"] and len(track["psnr_after"]) == track["frames"]
+    assert all(np.isfinite(track["psnr_after"]))
     phys = [r for r in log if r["stage"] == "physics" and "loss" in r]
     assert [r["it"] for r in phys] == [1, 2, 3]
     assert all(np.isfinite(r["loss"]) for r in phys)
@@ -171,14 +174,23 @@ def test_resume_continues_from_the_last_checkpoint(scene, tmp_path):
         fit(scene, run, cfg)
 
     def count(stage, step, total, losses):
-        calls["n"] += 1
+        calls["n"] += stage == "kinematic"
         assert stage != "canonical", "resume must not redo a finished stage"
+        if stage == "track" and step == 3:  # and once more while refining the tracks, after three frames
+            raise KeyboardInterrupt
 
-    fit(scene, run, resume=True, progress=count)
+    with pytest.raises(KeyboardInterrupt):
+        fit(scene, run, resume=True, progress=count)
     assert calls["n"] == cfg.kinematic.iterations - 12
-    its = [json.loads(line)["it"] for line in (run / "log.jsonl").read_text().splitlines()
-           if json.loads(line)["stage"] == "kinematic" and "loss" in json.loads(line)]  # fmt: skip
+    assert (run / "track-partial.npz").is_file()
+    tracked = []
+    fit(scene, run, resume=True, progress=lambda stage, step, *a: tracked.append(step) if stage == "track" else None)
+    assert tracked[0] == 3  # it went on from the third frame
+    assert not (run / "track-partial.npz").exists()
+    log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    its = [r["it"] for r in log if r["stage"] == "kinematic" and "loss" in r]
     assert its == list(range(1, cfg.kinematic.iterations + 1))
+    assert len([r for r in log if "track" in r]) == 1
     assert json.loads((run / "run.json").read_text())["status"] == "done"
 
 
@@ -313,7 +325,8 @@ def test_the_kinematic_fit_is_kept_through_the_physical_stage(fitted):
 
 
 def test_observed_state_deformation_is_the_jacobian_of_the_kinematic_map(fitted):
-    """F of the forecast's starting state (forward-mode autodiff) against central differences of the same map."""
+    """F of the forecast's starting state (forward-mode autodiff) against central differences of the same map (the
+    refined tracks')."""
     from causalgs.model.fit import load_model
     from causalgs.model.scene import _rotation
 
@@ -325,7 +338,7 @@ def test_observed_state_deformation_is_the_jacobian_of_the_kinematic_map(fitted)
 
     def place(x):
         with torch.no_grad():
-            return m.trajectories(m.mixtures(x), x, None, k, [k])[0][0]
+            return m.tracked_positions(x, [k])[0]
 
     eps = 1e-5
     fd = torch.stack([(place(x0 + eps * e) - place(x0 - eps * e)) / (2 * eps) for e in torch.eye(3, dtype=x0.dtype)],
@@ -395,7 +408,8 @@ def test_forecast_starts_from_the_last_observed_state(fitted):
     a = states(m, [k - 1, k + 1], "mpm")
     b = states(m, [k - 1, k + 1], "mpm-open")
     c = states(m, [k - 1], "velocity")
-    assert torch.equal(a[k - 1].means, c[k - 1].means) and torch.equal(a[k - 1].quats, c[k - 1].quats)
+    assert len(m.track_A) == tl.train_frames  # the tracked state is the refined tracks' (covariances by their map)
+    assert torch.equal(a[k - 1].means, c[k - 1].means) and torch.equal(a[k - 1].covs, c[k - 1].covs)
     with torch.no_grad():
         sim = m.simulate([k - 1])
     replay = m.physical_states(sim["x"], sim["F"])[0]
