@@ -189,7 +189,7 @@ PRESETS: dict[str, dict] = {
         "canonical": {"iterations": 1500, "densify_from": 200, "densify_until": 1200, "densify_every": 100,
                       "opacity_reset_every": 0, "max_gaussians": 20_000, "sh_degree": 1,
                       "sh_degree_every": 500},
-        "kinematic": {"iterations": 1200},
+        "kinematic": {"iterations": 1200, "track": {"iterations": 20}},
         "physics": {"iterations": 60},
     },
     "full": {
