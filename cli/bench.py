@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 
 import click
 
@@ -205,9 +206,11 @@ def fit_(data_root, out_root, scenes, preset, lpips_nets, as_json, device):
             resume = (run / "checkpoint.pt").is_file()
             run_fit(Path(data_root) / scene, run, None if resume else FitConfig.preset_config(preset), resume=resume)
         info = json.loads((run / "run.json").read_text())
+        t0 = time.monotonic()
         metrics = evaluate(run, dynamics=DYNAMICS, lpips_nets=_nets(lpips_nets))
         row = {"scene": scene, "preset": preset, "fit_seconds": info.get("total_seconds"),
-               "stage_seconds": info.get("stage_seconds"), **metrics}  # fmt: skip
+               "stage_seconds": info.get("stage_seconds"), "eval_seconds": time.monotonic() - t0,
+               **metrics}  # fmt: skip
         rows.append(row)
         click.echo(json.dumps(row))
     if not as_json:
