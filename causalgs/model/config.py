@@ -65,6 +65,10 @@ class KinematicConfig:
     # stage is held to and the forecast starts from. The velocity field smooths an impact over several frames; a
     # frame's own correction does not (track.iterations = 0: off).
     track: RefineConfig = field(default_factory=RefineConfig)
+    # Then the velocity field's twists (f_weight and the per-frame table) are fitted to those tracks in 3D, this many
+    # Adam steps on the positions of a sample of the moving Gaussians (no rendering; 0: off): the initial velocity
+    # and spin the simulator starts from, and the field's extrapolation, are the refined motion's, not the smoothed.
+    distil: int = 300
 
 
 @dataclass

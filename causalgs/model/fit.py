@@ -43,6 +43,7 @@ from causalgs.model.appearance import JointAppearance
 from causalgs.model.canonical import train_canonical
 from causalgs.model.config import FitConfig
 from causalgs.model.gaussians import Gaussians
+from causalgs.model.kinematic import blend, pattern_motion
 from causalgs.model.refine import refine_tracks
 from causalgs.model.scene import FORECAST_SOURCES, CausalGS, floor_patches, scene_bounds, stray_gaussians
 from causalgs.model.timeline import Timeline
@@ -51,6 +52,7 @@ from causalgs.sim.effects import REGISTRY, Effects
 from causalgs.similarity import Similarity
 
 GRAVITY_Z = "gravity.g[2]"  # gravity's vertical component in the physics frame
+DISTIL_SAMPLE = 4096  # moving Gaussians whose positions the field is fitted to the refined tracks by
 REST_SAMPLE = 2048  # material points whose speed the rest penalty of the unstructured field (VFD off) averages
 UPRIGHT_GROUP = 20  # a motion pattern tracked by fewer solid Gaussians gives no centroid for free flight
 
@@ -394,10 +396,45 @@ class Trainer:
         self._split_static()
         partial = self.run.out / "track-partial.npz"
         self._track(partial)
+        self._distil()
         self.stage_seconds["kinematic"] = time.monotonic() - t0
         self.run.save(self._payload("physics", 0))
         self.run.save(self._payload("physics", 0), self.run.out / "kinematic.pt")
         partial.unlink(missing_ok=True)
+
+    def _distil(self) -> None:
+        """Fit the velocity field's twists to the refined tracks in 3D (``kinematic.distil`` steps) and keep it as the
+        tracked copy: the positions of a sample of the moving Gaussians by the patterns' motion against the tracks'."""
+        m, kc = self.model, self.config.kinematic
+        if kc.distil == 0 or len(m.track_A) == 0:
+            return
+        f, n = m.fields, len(m.track_A)
+        x0 = m.gaussians.means.detach()[m.dynamic]
+        x0 = x0[torch.as_tensor(self.rng.permutation(len(x0))[:DISTIL_SAMPLE])]
+        size = float((m.hi - m.lo).max())
+        with torch.no_grad():
+            h = f.mixture(f.code(x0))
+            target = m.tracked_positions(x0, range(n))
+        opt = torch.optim.Adam([{"params": list(f.f_weight.parameters()), "lr": kc.lr},
+                                {"params": [f.frame_twists], "lr": kc.lr_frame_twists}])  # fmt: skip
+
+        def error() -> torch.Tensor:  # RMS distance to the tracks over the window, in scene sizes
+            R, t, q = pattern_motion(f, n - 1, 1.0 / self.timeline.fps, kc.substeps)
+            xs = torch.stack([blend(h, x0, None, R[k], t[k], q[k])[0] for k in range(n)])
+            return ((xs - target) ** 2).sum(-1).mean().sqrt() / size
+
+        with torch.no_grad():
+            before = float(error())
+        for _ in range(kc.distil):
+            loss = error()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+        m.keep_track()
+        with torch.no_grad():
+            after = float(error())
+        self.run.log({"stage": "kinematic", "it": kc.iterations, "distil": {"rms_before": before, "rms_after": after,
+                      "scene_size": size}})  # fmt: skip
 
     def _track(self, partial: Path) -> None:
         """The per-frame refinement of the tracked motion (``kinematic.track``; :mod:`causalgs.model.refine`), kept in

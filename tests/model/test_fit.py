@@ -78,6 +78,8 @@ def test_fit_writes_a_complete_run(fitted):
     (track,) = [r["track"] for r in log if "track" in r]  # the per-frame refinement, scored on held-out cameras
     assert track["frames"] == info["train_frames"] and len(track["psnr_after"]) == track["frames"]
     assert all(np.isfinite(track["psnr_after"]))
+    (distil,) = [r["distil"] for r in log if "distil" in r]  # the field fitted to the tracks in 3D
+    assert distil["rms_after"] < distil["rms_before"]
     phys = [r for r in log if r["stage"] == "physics" and "loss" in r]
     assert [r["it"] for r in phys] == [1, 2, 3]
     assert all(np.isfinite(r["loss"]) for r in phys)
@@ -409,6 +411,10 @@ def test_forecast_starts_from_the_last_observed_state(fitted):
     b = states(m, [k - 1, k + 1], "mpm-open")
     c = states(m, [k - 1], "velocity")
     assert len(m.track_A) == tl.train_frames  # the tracked state is the refined tracks' (covariances by their map)
+    with torch.no_grad():  # and the velocity field was fitted to them: it moves the Gaussians where the tracks do
+        x0 = m.gaussians.means[m.dynamic]
+        gap = (m.trajectories(m.mixtures(x0), x0, None, k, [k])[0][0] - m.tracked_positions(x0, [k])[0]).norm(dim=1)
+    assert float(gap.mean()) < 0.05 * float((m.hi - m.lo).max())
     assert torch.equal(a[k - 1].means, c[k - 1].means) and torch.equal(a[k - 1].covs, c[k - 1].covs)
     with torch.no_grad():
         sim = m.simulate([k - 1])
