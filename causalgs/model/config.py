@@ -26,7 +26,6 @@ from causalgs.model.residual import ResidualConfig
 from causalgs.model.upright import FrameConfig
 from causalgs.settings import check_keys
 
-
 TRACK_SHIFT = 4e-3  # m per step, the per-frame refinement's translation step in the fit (kinematic.track.lr_shift)
 
 
