@@ -266,17 +266,23 @@ class CausalGS(torch.nn.Module):
         frames = [int(k) for k in frames]
         z = self.codes() if codes is None else codes
         h = self.kinematic_fields.mixture(z)
-        means, quats = self.kinematic(max(frames), frames=frames, mixtures=h)
         g = self.gaussians
         idx = torch.nonzero(self.dynamic).flatten()
+        by_field = [k for k in frames if k >= len(self.track_A)]  # the refined tracks place the others
+        moved = {}
+        if by_field:
+            means, quats = self.kinematic(max(by_field), frames=by_field, mixtures=h)
+            moved = {k: (means[i], quats[i]) for i, k in enumerate(by_field)}
         out = []
-        for i, k in enumerate(frames):
-            refined = k < len(self.track_A)
-            m, q, s = means[i], (g.quats if refined else quats[i]), g.scales
+        for k in frames:
+            refined = k not in moved
             if refined:  # each pattern's refined motion; the covariances follow its Jacobian
-                A, b = self.track_A[k].to(m.dtype), self.track_b[k].to(m.dtype)
-                m = m.clone()
+                A, b = self.track_A[k].to(g.means.dtype), self.track_b[k].to(g.means.dtype)
+                m, q = g.means.clone(), g.quats
                 m[idx] = place(h.to(m.dtype), g.means[idx], A, b)
+            else:
+                m, q = moved[k]
+            s = g.scales
             dx = None
             if residual and self.residual is not None and k < self.train_frames:
                 d = self.residual(z, k / self.fps)
