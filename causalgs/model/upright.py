@@ -88,6 +88,10 @@ class Flight:
     rms: float  # the parabolas' RMS residual (scene units)
     segments: list[tuple[int, int, int]] = field(default_factory=list)  # (track, first frame, last frame) of each
 
+    def mapped(self, sim: Similarity) -> Flight:
+        """The same flight in another frame (``sim`` maps this one's coordinates to it)."""
+        return Flight(sim.vectors(self.g), self.flights, self.frames, sim.scale * self.rms, list(self.segments))
+
 
 @dataclass
 class Upright:
@@ -112,10 +116,7 @@ class Upright:
         if self.plane is not None:
             n, d = sim.plane(self.plane.normal, self.plane.offset)
             plane = Plane(n, d, self.plane.share, sim.scale * self.plane.rms)
-        flight = None
-        if self.flight is not None:
-            f = self.flight
-            flight = Flight(sim.vectors(f.g), f.flights, f.frames, sim.scale * f.rms, list(f.segments))
+        flight = None if self.flight is None else self.flight.mapped(sim)
         gravity = None if self.gravity is None else self.gravity * sim.scale
         return Upright(sim.directions(self.up), gravity, self.source, plane, flight, list(self.notes))
 

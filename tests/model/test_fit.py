@@ -1370,6 +1370,48 @@ def test_refinements_in_worker_processes_are_the_serial_ones(fitted, tmp_path):
     assert len(steps[2]) < len(steps[1])  # the worker's refinements report nowhere here
 
 
+def test_gravity_is_measured_again_from_the_refined_tracks(fitted, tmp_path):
+    """Tracks that fall at 6 units/s² in a model whose frame said 9.8: the model is re-scaled by 9.8 / 6, so the
+    tracks fall at 9.8 in its units, the frame's gravity in the data's units becomes 6, and a render of a tracked frame
+    from the re-posed camera is unchanged; with gravity given, nothing moves."""
+    import dataclasses
+    import shutil
+
+    from causalgs.dataset import load_dataset
+    from causalgs.io import read_json
+    from causalgs.model.fit import Run, Trainer, _load_model
+    from causalgs.model.upright import FrameConfig, Upright, free_flight
+
+    shutil.copytree(fitted, tmp_path / "run")
+    run = Run(tmp_path / "run")
+    config = dataclasses.replace(_config(), frame=FrameConfig(infer=True))
+    trainer = Trainer(load_dataset(read_json(run.info_path, "run info")["data"]), run, config)
+    m = _load_model(trainer, run.load(run.out / "kinematic.pt"), run.out / "kinematic.pt")
+    tl = trainer.timeline
+    n, K = tl.train_frames, m.fields.config.patterns
+    t = torch.arange(n, dtype=torch.float64) / tl.fps
+    fall = torch.stack([0.3 * t, 0.0 * t, 1.0 * t - 0.5 * 6.0 * t * t], -1)  # every pattern falls at 6 units/s²
+    m.set_tracks(torch.eye(3, dtype=torch.float64).expand(n, K, 3, 3), fall[:, None].expand(n, K, 3))
+    trainer.upright = Upright(np.array([0.0, 0.0, 1.0]), 9.8, "plane+flight")
+    frame = trainer.train[n - 1][0]
+    with torch.no_grad():
+        before, _, _ = m.render(m.observed([n - 1])[0], frame.camera, trainer.bg)
+    scale = m.similarity().scale
+    trainer._regravitate()
+    assert m.similarity().scale == pytest.approx(scale * 9.8 / 6.0, rel=1e-6)
+    assert trainer.upright.gravity == pytest.approx(6.0, rel=1e-6)
+    assert "refined tracks" in trainer.upright.notes[-1]
+    x0 = m.gaussians.means.detach()[m.dynamic]
+    with torch.no_grad():
+        centroid = m.tracked_positions(x0, range(n)).double().mean(1, keepdim=True).numpy()
+        after, _, _ = m.render(m.observed([n - 1])[0], trainer.train[n - 1][0].camera, trainer.bg)
+    assert -free_flight(centroid, tl.fps, 1.0, np.array([0.0, 0.0, 1.0])).g[2] == pytest.approx(9.8, rel=1e-6)
+    assert float((after - before).abs().max()) < 1e-3
+    trainer.config = dataclasses.replace(config, frame=FrameConfig(infer=True, gravity=5.0))
+    trainer._regravitate()  # given: kept
+    assert m.similarity().scale == pytest.approx(scale * 9.8 / 6.0, rel=1e-6)
+
+
 def test_a_reposed_scene_is_fitted_in_its_physics_frame(scene, fitted, tmp_path):
     """The same scene re-posed (turned, scale 0.3, moved) with its up and gravity given: the fit re-poses its model
     into the physics frame (up to a turn about z, the original's), predicts and evaluates there, and exports in the
