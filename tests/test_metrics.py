@@ -150,6 +150,25 @@ def test_many_predictions_of_one_truth_score_as_each_alone():
     assert many["a"]["lpips_alex"] < many["b"]["lpips_alex"]
 
 
+def test_predictions_identical_to_an_earlier_one_are_scored_once(monkeypatch):
+    """Two dynamics that render the same images (bit for bit) get the same report, and their LPIPS features are
+    computed once; a prediction one pixel away from them is scored on its own."""
+    import causalgs.metrics as metrics
+
+    gts = list(_random_images(2, 40, 36, 21, torch.float32))
+    a = [(g + 0.05 * _random_images(1, 40, 36, 30 + i, torch.float32)[0]).clamp(0, 1) for i, g in enumerate(gts)]
+    near = [x.clone() for x in a]
+    near[1][3, 4, 0] = 1.0 - near[1][3, 4, 0]
+    calls = []
+    embed = metrics.lpips_embedding
+    monkeypatch.setattr(metrics, "lpips_embedding", lambda *x, **k: calls.append(1) or embed(*x, **k))
+    many = metrics.image_metrics_many({"a": a, "copy": [x.clone() for x in a], "near": near}, gts,
+                                      lpips_nets=("alex",))  # fmt: skip
+    assert len(calls) == 2 * 3  # per true image: its own features, a's and near's
+    assert many["copy"]["psnr"] == many["a"]["psnr"] and many["copy"]["lpips_alex"] == many["a"]["lpips_alex"]
+    assert many["near"]["psnr"] != many["a"]["psnr"]
+
+
 @needs_vgg
 def test_lpips_unscaled_feeds_the_images_as_they_are():
     """FreeGave's convention: [0, 1] images into the network unscaled. ``normalize=False`` on x is the default

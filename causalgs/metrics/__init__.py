@@ -58,12 +58,20 @@ _LPIPS_KEYS = (("lpips_alex", "alex", True), ("lpips_vgg", "vgg", True), ("lpips
 
 def image_metrics_many(preds: dict, gts, *, lpips_nets=("alex", "vgg")) -> dict:
     """:func:`image_metrics` of several predictions of the same ground truth (``preds``: name → images), each
-    ground-truth image's LPIPS features computed once for all of them."""
+    ground-truth image's LPIPS features computed once for all of them, and predictions identical to an earlier one's
+    (two dynamics that render the same states) scored once."""
     nets = tuple(lpips_nets)
     for net in nets:
         if net not in NETS:
             raise CausalGSError(f"unknown LPIPS network {net!r} (expected one of {', '.join(NETS)})")
     pairs = {name: _pairs(images, gts) for name, images in preds.items()}
+    same: dict[str, str] = {}  # name → the earlier name whose images are the same, bit for bit
+    names = list(pairs)
+    for i, name in enumerate(names):
+        twin = next((o for o in names[:i] if o not in same and _identical(pairs[o][0], pairs[name][0])), None)
+        if twin is not None:
+            same[name] = twin
+    pairs = {name: v for name, v in pairs.items() if name not in same}
     gts = next(iter(pairs.values()))[1] if pairs else []
     lpips_state = {net: lpips_available(net) if net in nets else (False, "not requested") for net in NETS}
     scored = [(key, net, norm) for key, net, norm in _LPIPS_KEYS if lpips_state[net][0]]
@@ -85,7 +93,15 @@ def image_metrics_many(preds: dict, gts, *, lpips_nets=("alex", "vgg")) -> dict:
                         per[name][key].append(lpips_between(e, truth[key], net=net))
             except CausalGSError as e:
                 raise CausalGSError(f"image {i}: {e}") from None
-    return {name: _report(per[name], mses[name], lpips_state) for name in pairs}
+    out = {name: _report(per[name], mses[name], lpips_state) for name in pairs}
+    return {name: dict(out[same.get(name, name)]) for name in preds}
+
+
+def _identical(a: list, b: list) -> bool:
+    """Whether two lists of images are the same, bit for bit."""
+    if len(a) != len(b):
+        return False
+    return all(torch.equal(torch.as_tensor(x), torch.as_tensor(y)) for x, y in zip(a, b, strict=True))
 
 
 def _report(per: dict[str, list[float]], mses: list[float], lpips_state: dict) -> dict:
