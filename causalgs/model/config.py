@@ -26,6 +26,7 @@ from causalgs.model.residual import ResidualConfig
 from causalgs.model.upright import FrameConfig
 from causalgs.settings import check_keys
 
+TRACK_RESTART = 4  # training images a frame's two starts are compared on (kinematic.track.restart)
 TRACK_SHIFT = 4e-3  # m per step, the per-frame refinement's translation step in the fit (kinematic.track.lr_shift)
 
 
@@ -71,7 +72,7 @@ class KinematicConfig:
     # stage is held to and the forecast starts from. The velocity field smooths an impact over several frames; a
     # frame's own correction does not (track.iterations = 0: off). A correction may move TRACK_SHIFT m per step: at
     # 1e-3 the tracks of a ball bouncing at 30 fps fell behind at every impact (bounce, val 29.5 dB against 32.9).
-    track: RefineConfig = field(default_factory=lambda: RefineConfig(lr_shift=TRACK_SHIFT))
+    track: RefineConfig = field(default_factory=lambda: RefineConfig(lr_shift=TRACK_SHIFT, restart=TRACK_RESTART))
     # Then the velocity field's twists (f_weight and the per-frame table) are fitted to those tracks in 3D, this many
     # Adam steps on the positions of a sample of the moving Gaussians (no rendering; 0: off): the initial velocity
     # and spin the simulator starts from, and the field's extrapolation, are the refined motion's, not the smoothed.
@@ -142,6 +143,10 @@ class PhysicsConfig:
     # test and still forecast the future frames worse.
     assimilate: int = 12
     assimilate_scored: int = 6
+    # The simulation from the chosen start gives the velocities at the last observed frame, the refined tracks the
+    # positions and rotations there, and the forecast goes on from both (off: the simulation from the start goes on):
+    # where the simulation had drifted from the tracks by the window's end, the forecast no longer carries the drift.
+    anchor: bool = True
     assimilate_iterations: int = 0
     lr_assimilate: float = 0.02
 
@@ -201,13 +206,14 @@ PRESETS: dict[str, dict] = {
         "canonical": {"iterations": 1500, "densify_from": 200, "densify_until": 1200, "densify_every": 100,
                       "opacity_reset_every": 0, "max_gaussians": 20_000, "sh_degree": 1,
                       "sh_degree_every": 500},
-        "kinematic": {"iterations": 1200, "track": {"iterations": 20, "lr_shift": TRACK_SHIFT}},
+        "kinematic": {"iterations": 1200, "track": {"iterations": 20, "lr_shift": TRACK_SHIFT,
+                                                          "restart": TRACK_RESTART}},
         "physics": {"iterations": 60},
     },
     "full": {
         "canonical": {"iterations": 5000, "densify_from": 300, "densify_until": 3500, "densify_every": 100,
                       "opacity_reset_every": 2000, "max_gaussians": 40_000, "sh_degree": 2, "sh_degree_every": 1000},
-        "kinematic": {"iterations": 3000, "track": {"lr_shift": TRACK_SHIFT}},
+        "kinematic": {"iterations": 3000, "track": {"lr_shift": TRACK_SHIFT, "restart": TRACK_RESTART}},
         "physics": {"iterations": 160, "budget": 3000},
     },
 }

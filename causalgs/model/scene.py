@@ -553,7 +553,9 @@ class CausalGS(torch.nn.Module):
         materials and effects from the observed state: the prediction of the future from what has been seen, rather
         than a replay of the whole sequence from t = 0. After the assimilation stage it starts a few frames before
         the end of the window, from the state (tracked, or replayed from t = 0) and the velocity correction that
-        made the simulation match those frames' images best; otherwise at the last observed frame's tracked state."""
+        made the simulation match those frames' images best; otherwise at the last observed frame's tracked state.
+        With ``physics.anchor`` the simulation from the chosen start gives only the velocities at the last observed
+        frame, and the forecast goes on from there with the tracked positions and rotations of that frame."""
         last = self.train_frames - 1
         frames = [int(k) for k in frames]
         if not frames or min(frames) <= last:
@@ -563,7 +565,12 @@ class CausalGS(torch.nn.Module):
             return self.simulate(frames, start=last)
         source = FORECAST_SOURCES[int(self.forecast_source)]
         restart = self.restart_state(start, source=source)
-        return self.simulate(frames, start=start, twists=self.forecast_twists.detach(), restart=restart)
+        twists = self.forecast_twists.detach()
+        if start >= last or not self.config.physics.anchor:
+            return self.simulate(frames, start=start, twists=twists, restart=restart)
+        end = self.simulate([last], start=start, twists=twists, restart=restart)
+        seen = self.restart_state(last, source="observed")
+        return self.simulate(frames, start=last, restart={**seen, "v": end["v"][0].detach()})
 
     def physical_states(self, x: torch.Tensor, F: torch.Tensor) -> list[State]:
         """Gaussian states (means, covariances) for simulated particle states x [T, P, 3], F [T, P, 3, 3]."""
