@@ -56,10 +56,6 @@ class KinematicConfig:
     # unless the images say otherwise, so a body that has landed stops rather than drifting at the window's end.
     lambda_rest: float = 0.01
     rest_reach: float = 0.2  # with learned centres: a rotation costs its speed at this fraction of the scene size
-    # Weight of the twists' roughness over the window (causalgs.model.kinematic.twist_roughness, in scene sizes): a
-    # motion of constant acceleration unless the images say otherwise, so a pattern's twist cannot spike at the first
-    # frames (where the midpoint rule barely sees it) to undo a turn that the Gaussians' appearance has absorbed.
-    lambda_rough: float = 1.0
     substeps: int = 1  # RK2 steps per frame interval
     lambda_dssim: float = 0.2
     static_threshold: float = 0.01  # a Gaussian that moves less than this fraction of the scene size is static
@@ -77,7 +73,6 @@ class KinematicConfig:
     # Adam steps on the positions of a sample of the moving Gaussians (no rendering; 0: off): the initial velocity
     # and spin the simulator starts from, and the field's extrapolation, are the refined motion's, not the smoothed.
     distil: int = 300
-    distil_rough: float = 0.3  # weight of the twists' roughness (as lambda_rough) against the distance to the tracks
 
 
 @dataclass

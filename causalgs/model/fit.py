@@ -44,7 +44,7 @@ from causalgs.model.appearance import JointAppearance
 from causalgs.model.canonical import train_canonical
 from causalgs.model.config import FitConfig
 from causalgs.model.gaussians import Gaussians
-from causalgs.model.kinematic import blend, pattern_motion, twist_roughness
+from causalgs.model.kinematic import blend, pattern_motion
 from causalgs.model.refine import refine_tracks
 from causalgs.model.scene import FORECAST_SOURCES, CausalGS, floor_patches, scene_bounds, stray_gaussians
 from causalgs.model.timeline import Timeline
@@ -257,8 +257,8 @@ class Trainer:
         if self._learns_gravity(out) and m is not None and m.particles is not None:
             names = m.simulator().effects.param_names()
             if GRAVITY_Z in names:  # the physical stage's factor on the measured magnitude
-                factor = -float(m.effect_params[names.index(GRAVITY_Z)].detach()) / GRAVITY
-                out = {**out, "gravity_learned": out["gravity"] * factor}
+                out = {**out, "gravity_learned": out["gravity"] * -float(m.effect_params[names.index(GRAVITY_Z)])
+                       / GRAVITY}  # fmt: skip
         return out
 
     def _learns_gravity(self, frame: dict | None) -> bool:
@@ -372,9 +372,6 @@ class Trainer:
                     x0 = x0[torch.as_tensor(self.rng.permutation(len(x0))[:REST_SAMPLE])]
                     rest = f.flow_velocity(x0, times).norm(dim=-1).mean()
                 loss = loss + kc.lambda_rest * rest
-            if kc.lambda_rough > 0 and f.structured:
-                size = float((m.hi - m.lo).max())
-                loss = loss + kc.lambda_rough * twist_roughness(f, window - 1, 1.0 / self.timeline.fps, lever) / size
             _finite(loss, "kinematic", it)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -420,15 +417,11 @@ class Trainer:
         with torch.no_grad():
             h = f.mixture(f.code(x0))
             target = m.tracked_positions(x0, range(n))
-            w = h / h.sum(0).clamp_min(1e-12)  # each pattern's radius of gyration, as the kinematic stage's lever
-            spread = (w * ((x0[:, None] - (w.T @ x0)[None]) ** 2).sum(-1)).sum(0).sqrt().clamp_min(0.01 * size)
-            lever = spread if kc.lr_centres == 0 else kc.rest_reach * size
         opt = torch.optim.Adam([{"params": list(f.f_weight.parameters()), "lr": kc.lr},
                                 {"params": [f.frame_twists], "lr": kc.lr_frame_twists}])  # fmt: skip
-        dt = 1.0 / self.timeline.fps
 
         def error() -> torch.Tensor:  # RMS distance to the tracks over the window, in scene sizes
-            R, t, q = pattern_motion(f, n - 1, dt, kc.substeps)
+            R, t, q = pattern_motion(f, n - 1, 1.0 / self.timeline.fps, kc.substeps)
             xs = torch.stack([blend(h, x0, None, R[k], t[k], q[k])[0] for k in range(n)])
             return ((xs - target) ** 2).sum(-1).mean().sqrt() / size
 
@@ -436,8 +429,6 @@ class Trainer:
             before = float(error())
         for _ in range(kc.distil):
             loss = error()
-            if kc.distil_rough > 0:
-                loss = loss + kc.distil_rough * twist_roughness(f, n - 1, dt, lever) / size
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

@@ -173,18 +173,3 @@ def flow_paths(fields: InversePhysics, x0: torch.Tensor, steps: int, dt: float, 
     v = fields.flow_velocity(x0, mid.to(x0.dtype))  # [n, N, 3]
     path = torch.cumsum(v * dts, dim=0)[m - 1::m]
     return torch.cat([x0[None], x0[None] + path], dim=0)
-
-
-def twist_roughness(fields: InversePhysics, steps: int, dt: float, lever) -> torch.Tensor:
-    """How far the patterns' motion departs from constant acceleration over frames 0..``steps`` (``dt`` apart): the
-    mean size of the twists' second differences at those frames, the angular part times each pattern's ``lever``
-    (scalar or [K]), times dt — a change of the per-frame displacement, in scene units. In free flight a body's
-    velocity changes linearly and its spin not at all, so this is zero; a contact is a few large terms. As an L1
-    penalty it leaves those few be and evens out the rest: a twist is not free to spike at the window's first frames,
-    where the midpoint rule barely sees it."""
-    if steps < 2:
-        return torch.zeros((), dtype=fields.centres.dtype)
-    W = fields.twists(torch.arange(steps + 1, dtype=torch.float64).to(fields.centres.dtype) * dt)
-    d2 = W[2:] - 2 * W[1:-1] + W[:-2]
-    size = lambda v: torch.sqrt((v**2).sum(-1) + 1e-18)  # noqa: E731 (the norm, differentiable at zero)
-    return ((size(d2[..., :3]) + lever * size(d2[..., 3:])) * dt).mean()

@@ -10,7 +10,7 @@ import torch
 
 from causalgs.errors import CausalGSError
 from causalgs.model.fields import FieldsConfig, InversePhysics, basis
-from causalgs.model.kinematic import flow_paths, integrate, quat_mul, rotvec_quat, twist_roughness
+from causalgs.model.kinematic import flow_paths, integrate, quat_mul, rotvec_quat
 
 
 def _fields(frames: int = 11, **kw) -> InversePhysics:
@@ -227,45 +227,6 @@ def test_frame_twists_gradcheck_float64():
     model = Twists()
     assert torch.autograd.gradcheck(lambda table: torch.func.functional_call(model, {"f.frame_twists": table}, (t,)),
                                     (T,))  # fmt: skip
-
-
-def test_twist_roughness_is_zero_at_constant_acceleration_and_counts_a_kink():
-    """The roughness of twists that change linearly from frame to frame (free flight: velocity linear in time, spin
-    constant) is zero; a kink costs its second difference, as a plain loop over frames and patterns counts it (the
-    angular part times each pattern's lever, times dt); float64 finite differences in the per-frame table."""
-    f = _fields(patterns=2, width=8, depth=1, pos_freqs=1, time_freqs=1, frames=11)
-    with torch.no_grad():
-        f.f_weight[-1].weight.zero_()
-        f.f_weight[-1].bias.zero_()  # the twists are the per-frame table alone
-        k = torch.arange(11, dtype=torch.float64)[:, None, None]
-        a, b = torch.randn(1, 2, 6, dtype=torch.float64), torch.randn(1, 2, 6, dtype=torch.float64)
-        b[..., 3:] = 0.0
-        f.frame_twists.copy_(a + b * k)
-    lever = torch.tensor([0.3, 0.05], dtype=torch.float64)
-    assert float(twist_roughness(f, 10, 0.1, lever)) < 1e-8
-    with torch.no_grad():
-        f.frame_twists[6:, 0, 2] -= 3.0  # a bounce: pattern 0's vertical velocity drops at frame 6
-        f.frame_twists[6:, 1, 4] += 2.0  # pattern 1's spin changes there
-    T = f.frame_twists.detach()
-    plain = 0.0
-    for i in range(1, 10):
-        for p in range(2):
-            d2 = T[i + 1, p] - 2 * T[i, p] + T[i - 1, p]
-            plain += (float(d2[:3].norm()) + float(lever[p]) * float(d2[3:].norm())) * 0.1
-    assert float(twist_roughness(f, 10, 0.1, lever)) == pytest.approx(plain / 18, rel=1e-6)
-    assert float(twist_roughness(f, 1, 0.1, lever)) == 0.0  # two frames have no second difference
-
-    class Rough(torch.nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.f = f
-
-        def forward(self):
-            return twist_roughness(self.f, 10, 0.1, lever)
-
-    table = (T + 0.1 * torch.randn_like(T)).requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda t_: torch.func.functional_call(Rough(), {"f.frame_twists": t_}, ()),
-                                    (table,))  # fmt: skip
 
 
 def test_a_global_material_is_one_material_for_every_particle_and_learns():
