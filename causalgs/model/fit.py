@@ -257,8 +257,8 @@ class Trainer:
         if self._learns_gravity(out) and m is not None and m.particles is not None:
             names = m.simulator().effects.param_names()
             if GRAVITY_Z in names:  # the physical stage's factor on the measured magnitude
-                out = {**out, "gravity_learned": out["gravity"] * -float(m.effect_params[names.index(GRAVITY_Z)])
-                       / GRAVITY}  # fmt: skip
+                factor = -float(m.effect_params[names.index(GRAVITY_Z)].detach()) / GRAVITY
+                out = {**out, "gravity_learned": out["gravity"] * factor}
         return out
 
     def _learns_gravity(self, frame: dict | None) -> bool:
