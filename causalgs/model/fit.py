@@ -7,8 +7,11 @@
    fast body that no longer overlaps its image is still pulled towards it). At the end the fit is kept as the model's
    *tracked* copy of the fields, Gaussians that never move are frozen as static background (so are patches of the
    floor that the fit moved, :func:`~causalgs.model.scene.floor_patches`, when the physics has a ground, and a few
-   Gaussians far from every body, :func:`~causalgs.model.scene.stray_gaussians`), and the
-   model as it stands is kept as ``kinematic.pt``, the kinematic-only model that evaluation compares against;
+   Gaussians far from every body, :func:`~causalgs.model.scene.stray_gaussians`). Each motion pattern's motion is
+   then refined frame by frame against that frame's images (``kinematic.track``), gravity's magnitude measured
+   again from those tracks' free flight (:meth:`Trainer._regravitate`), the velocity field fitted to them
+   (``kinematic.distil``), and the model as it stands is kept as ``kinematic.pt``, the kinematic-only model that
+   evaluation compares against;
 3. **physics**: the dynamic Gaussians become MPM particles; renders of the simulated state and the distance between
    simulated and tracked positions at frame times train f_mat (materials), the fields through the initial velocity,
    and the learned effect parameters, through the checkpointed Taichi backward. Even iterations roll out from t = 0
