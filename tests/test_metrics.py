@@ -148,6 +148,9 @@ def test_many_predictions_of_one_truth_score_as_each_alone():
         for key in ("psnr", "psnr_pooled", "ssim", "lpips_alex"):
             assert many[name][key] == pytest.approx(alone[key], rel=1e-6), (name, key)
     assert many["a"]["lpips_alex"] < many["b"]["lpips_alex"]
+    # the features are computed in batches; each image's LPIPS is the one of its pair alone
+    for i, (x, g) in enumerate(zip(preds["b"], gts, strict=True)):
+        assert many["b"]["per_image"]["lpips_alex"][i] == pytest.approx(float(lpips(x, g, net="alex")), rel=1e-5)
 
 
 def test_predictions_identical_to_an_earlier_one_are_scored_once(monkeypatch):
