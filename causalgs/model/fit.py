@@ -51,7 +51,7 @@ from causalgs.model.kinematic import blend, pattern_motion
 from causalgs.model.refine import refine_tracks
 from causalgs.model.scene import FORECAST_SOURCES, CausalGS, floor_patches, scene_bounds, stray_gaussians
 from causalgs.model.timeline import Timeline
-from causalgs.model.upright import GRAVITY, FrameConfig, Upright, free_flight, infer_upright, normalising
+from causalgs.model.upright import GRAVITY, FrameConfig, Upright, flight_along, free_flight, infer_upright, normalising
 from causalgs.sim.effects import REGISTRY, Effects
 from causalgs.similarity import Similarity
 
@@ -549,7 +549,11 @@ class Trainer:
             traj[:, m.dynamic] = m.tracked_positions(x0[m.dynamic], range(len(m.track_A))).to(traj.dtype)
         centroids = self._centroids(traj, m.dynamic)
         size = float((m.hi - m.lo).max())
-        flight = free_flight(centroids, self.timeline.fps, size, np.array([0.0, 0.0, 1.0])) if centroids.size else None
+        if not centroids.size:
+            return
+        flight = free_flight(centroids, self.timeline.fps, size, np.array([0.0, 0.0, 1.0]))
+        if flight is None and self.upright.flight is not None:  # over the flights the velocity field showed
+            flight = flight_along(centroids, self.upright.flight.segments, self.timeline.fps)
         if flight is None or -flight.g[2] <= 0:
             return
         before = self.upright.gravity

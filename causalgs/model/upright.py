@@ -41,6 +41,7 @@ WINDOW_SECONDS = 0.1  # sliding windows of free-flight detection (at least 5 fra
 SIGNIFICANT = 4.0  # a window's acceleration counts when it is this many standard errors from zero
 CARRY = 0.05  # ... and would move a body by this fraction of the scene size over the observed time
 WOBBLE = 0.6  # a window this close to gravity (a fraction of it) is a wobble of the track, not a contact
+JOIN_RMS = 2.0  # two pieces of one flight are joined if one parabola fits both within this times their own RMS
 OUTLIER = 4.0  # a flight's end frame this many times the parabolas' RMS residual off them is dropped
 SHARED = 0.15  # windows whose accelerations differ by less than this fraction of the candidate's agree with it
 PLANE_TOL = 0.005  # RANSAC inlier distance, as a fraction of the scene size
@@ -187,6 +188,29 @@ def free_flight(tracks: np.ndarray, fps: float, size: float, axis: np.ndarray | 
         dev = np.linalg.norm(acc - g0, axis=1) / np.linalg.norm(g0)
         flights += _runs(g, keep & (dev < 2 * SHARED), dev < WOBBLE, width)
     return _joint_parabola(tracks, flights, fps, width)
+
+
+def flight_along(tracks: np.ndarray, segments: list[tuple[int, int, int]], fps: float) -> Flight | None:
+    """Gravity from tracked centroids ``tracks`` [F, G, 3] over flight ``segments`` (track, first, last frame) found
+    on smoother tracks of the same bodies; None without a segment. A smooth track's wobble splits one flight into
+    several: two segments of a track less than a window apart are joined where one parabola through both fits them
+    within :data:`JOIN_RMS` times the RMS of a parabola each (a contact between them would bend the joined one).
+    Noisy tracks, whose windows scatter too much to find a flight of their own, still give the acceleration over
+    a long flight: a tumbling box's tracks gave gravity within 2% of the truth over one 29-frame flight, 18% off
+    over its four pieces."""
+    width = max(5, round(WINDOW_SECONDS * fps))
+    kept = [(g, a, b) for g, a, b in sorted(segments) if g < tracks.shape[1] and b < len(tracks) and b > a]
+    joined: list[tuple[int, int, int]] = []
+    for g, a, b in kept:
+        if joined and joined[-1][0] == g and a - joined[-1][2] <= width:
+            last = joined[-1]
+            whole = _parabolas(tracks, [(g, last[1], max(b, last[2]))], fps)
+            parts = _parabolas(tracks, [last, (g, a, b)], fps)
+            if whole is not None and parts is not None and whole[1].rms <= JOIN_RMS * parts[1].rms:
+                joined[-1] = (g, last[1], max(b, last[2]))
+                continue
+        joined.append((g, a, b))
+    return _joint_parabola(tracks, joined, fps, width) if joined else None
 
 
 def _runs(track: int, agrees: np.ndarray, near: np.ndarray, width: int) -> list[tuple[int, int, int]]:

@@ -126,3 +126,25 @@ def test_with_a_floor_and_only_sliding_up_is_the_floors():
     u = infer_upright(floor_points(), tracks, FPS, CAMERAS, 3.0, FrameConfig())
     assert u.source == "plane" and u.up @ [0, 0, 1] > 0.999 and u.gravity is None
     assert any("sliding or rolling" in n for n in u.notes)
+
+
+def test_flight_along_joins_the_pieces_of_one_flight_and_not_two_flights():
+    """Segments found on smoother tracks: the pieces of one parabola (split by a wobble, a few frames apart) are
+    joined and give g exactly; two flights with a bounce between them stay two (one parabola through both would
+    bend at the contact) and give g exactly as well; with noise, the joined flight gives g within 3%."""
+    from causalgs.model.upright import flight_along
+
+    fps, g = 60.0, np.array([0.0, 0.0, -9.8])
+    t = np.arange(40) / fps
+    one = (np.array([0.1, 0.2, 0.3]) + np.outer(t, [0.5, 0.0, 3.0]) + 0.5 * np.outer(t * t, g))[:, None]
+    f = flight_along(one, [(0, 2, 8), (0, 11, 16), (0, 17, 23), (0, 22, 30)], fps)
+    assert f.segments == [(0, 2, 30)] and np.allclose(f.g, g, atol=1e-6)
+    b = t - 0.3  # a bounce at t = 0.3 s (z = 0.659): the vertical velocity turns from -0.94 to +2 m/s
+    z = np.where(t < 0.3, 0.5 + 2.0 * t - 4.9 * t * t, 0.659 + 2.0 * b - 4.9 * b * b)
+    two = np.stack([0.2 * t, 0.0 * t, z], 1)[:, None]
+    f = flight_along(two, [(0, 0, 16), (0, 20, 39)], fps)
+    assert f.segments == [(0, 0, 16), (0, 20, 39)] and np.allclose(f.g, g, atol=1e-6)
+    noisy = one + np.random.default_rng(0).normal(0.0, 0.004, one.shape)
+    f = flight_along(noisy, [(0, 2, 8), (0, 11, 16), (0, 17, 23), (0, 22, 30)], fps)
+    assert f.segments == [(0, 2, 30)] and abs(-f.g[2] / 9.8 - 1) < 0.03
+    assert flight_along(one, [], fps) is None
