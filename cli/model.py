@@ -59,7 +59,9 @@ def fit(data, out, preset, config_path, overrides, no_physics, resume, seed, dev
                  E chosen by how well the replay fits the images (physics.calibrate; [] for off)
       assimilate where the forecast starts: 12 or 6 frames before the window's end
                  (physics.assimilate, physics.assimilate_scored), from the tracked or the replayed state,
-                 whichever forecasts the newest 6 observed frames best (assimilate=0: off)
+                 whichever forecasts the newest 6 observed frames best (assimilate=0: off); the
+                 forecast goes on from the last observed frame's tracked positions with the velocities
+                 that simulation reaches there (physics.anchor)
     An interrupted fit continues with --resume. The resolved config is saved as config.toml.
     """
     from causalgs import _ti
