@@ -80,21 +80,21 @@ def image_metrics_many(preds: dict, gts, *, lpips_nets=("alex", "vgg")) -> dict:
     mses: dict[str, list[float]] = {name: [] for name in pairs}
     with torch.no_grad():
         for chunk in _chunks(gts):
-            i = chunk[0]
+            i = chunk[0]  # the image an error names
             try:
-                g64 = [torch.as_tensor(gts[i]).to(torch.float64) for i in chunk]
+                g64 = torch.stack([torch.as_tensor(gts[j]).to(torch.float64) for j in chunk])
+                truth = {key: lpips_embedding(g64.float(), net=net, normalize=norm) for key, net, norm in scored}
                 for name, (ps, _) in pairs.items():
+                    p64 = []
                     for i, g in zip(chunk, g64, strict=True):
-                        p64 = torch.as_tensor(ps[i]).to(torch.float64)
-                        mse = float(_mse(p64, g, "rgb", 1.0)[0][0])
+                        p = torch.as_tensor(ps[i]).to(torch.float64)
+                        mse = float(_mse(p, g, "rgb", 1.0)[0][0])
                         mses[name].append(mse)
                         per[name]["psnr"].append(_psnr_db(mse))
-                        per[name]["ssim"].append(float(ssim(p64, g)))
-                i = chunk[0]
-                truth = {key: lpips_embedding(torch.stack(g64).float(), net=net, normalize=norm)
-                         for key, net, norm in scored}  # fmt: skip
-                for name, (ps, _) in pairs.items():
-                    batch = torch.stack([torch.as_tensor(ps[i]) for i in chunk]).float()
+                        per[name]["ssim"].append(float(ssim(p, g)))
+                        p64.append(p)
+                    i = chunk[0]
+                    batch = torch.stack(p64).float()
                     for key, net, norm in scored:
                         e = lpips_embedding(batch, net=net, normalize=norm)
                         per[name][key].extend(lpips_between(e, truth[key], net=net))

@@ -509,7 +509,7 @@ class Trainer:
         with torch.no_grad():
             alpha = torch.sigmoid(g.opacities.detach())
             static = g.means.detach()[~dynamic & (alpha >= 0.5)].double().numpy()
-        tracks = self._centroids(traj, dynamic)
+        tracks = self._centroids(traj[:, dynamic], dynamic)
         cams = np.stack([f.camera.center for f in self.data.train])
         before = m.similarity()  # the data's frame to the normalising one
         # what the config gives is in the data's frame and units; the evidence is in the normalising frame
@@ -524,14 +524,15 @@ class Trainer:
         self.run.log({"stage": "kinematic", "it": self.config.kinematic.iterations, "frame": self.frame_json()})
         return sim
 
-    def _centroids(self, traj: torch.Tensor, dynamic: torch.Tensor) -> np.ndarray:
-        """Tracked centroids [F, G, 3] of the motion patterns from positions ``traj`` [F, N, 3] of every Gaussian: the
-        solid ``dynamic`` ones grouped by their strongest pattern (groups of at least :data:`UPRIGHT_GROUP`)."""
+    def _centroids(self, moving: torch.Tensor, dynamic: torch.Tensor) -> np.ndarray:
+        """Tracked centroids [F, G, 3] of the motion patterns from positions ``moving`` [F, n, 3] of the ``dynamic``
+        Gaussians (a mask of all of them): the solid ones grouped by their strongest pattern (groups of at least
+        :data:`UPRIGHT_GROUP`)."""
         m, g = self.model, self.model.gaussians
         with torch.no_grad():
-            solid = dynamic & (torch.sigmoid(g.opacities.detach()) >= self.config.physics.min_opacity)
-            label = m.mixtures(g.means.detach()[solid]).argmax(1)
-            moving = traj[:, solid].double()
+            solid = torch.sigmoid(g.opacities.detach()[dynamic]) >= self.config.physics.min_opacity
+            label = m.mixtures(g.means.detach()[dynamic][solid]).argmax(1)
+            moving = moving[:, solid].double()
             groups = [k for k in torch.unique(label).tolist() if int((label == k).sum()) >= UPRIGHT_GROUP]
             return np.stack([moving[:, label == k].mean(1).numpy() for k in groups], 1) if groups else np.zeros(0)
 
@@ -544,13 +545,11 @@ class Trainer:
         if not fc.infer or fc.gravity > 0 or self.upright is None or len(m.track_A) == 0:
             return
         with torch.no_grad():
-            x0 = m.gaussians.means.detach()
-            traj = x0[None].repeat(len(m.track_A), 1, 1)
-            traj[:, m.dynamic] = m.tracked_positions(x0[m.dynamic], range(len(m.track_A))).to(traj.dtype)
-        centroids = self._centroids(traj, m.dynamic)
-        size = float((m.hi - m.lo).max())
+            moving = m.tracked_positions(m.gaussians.means.detach()[m.dynamic], range(len(m.track_A)))
+        centroids = self._centroids(moving, m.dynamic)
         if not centroids.size:
             return
+        size = float((m.hi - m.lo).max())
         flight = free_flight(centroids, self.timeline.fps, size, np.array([0.0, 0.0, 1.0]))
         if flight is None and self.upright.flight is not None:  # over the flights the velocity field showed
             flight = flight_along(centroids, self.upright.flight.segments, self.timeline.fps)
